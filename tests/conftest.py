@@ -1,0 +1,51 @@
+"""Shared fixtures: devices, dtypes and data locations.
+
+Tests read real data from the repo's own copies (``torch_frontend/data``, ``tests/data``). Some also
+read ``../shared/data`` (beside the repo in CI) and skip, saying so, when it is absent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini"
+TEST_DATA = REPO / "tests" / "data"
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DTYPES = [torch.float32, torch.float64]
+
+
+def shared_data_or_skip(*parts: str) -> Path:
+    """Path under ``../shared/data``; skips the test with a clear reason when it is absent."""
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"../shared/data not found beside the repo (looked for {p}); this test needs it")
+    return p
+
+
+def sample_frames(camera: str = "cam0"):
+    """Sorted paths of the repo's sample EuRoC frames for ``camera``."""
+    return sorted((SAMPLE / "mav0" / camera / "data").glob("*.png"))
+
+
+def load_gray(path) -> "torch.Tensor":
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, f"cannot read {path}"
+    return img
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    return torch.device(request.param)
+
+
+@pytest.fixture(params=DTYPES, ids=["f32", "f64"])
+def dtype(request):
+    return request.param

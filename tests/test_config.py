@@ -1,0 +1,186 @@
+"""Config loader: OpenCV FileStorage YAML, VINS-Mono and VINS-Fusion keys, errors."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from torch_frontend import ConfigError, load_camera, load_config
+from torch_frontend.io import read_opencv_yaml
+
+from .conftest import REPO, SHARED_DATA
+
+CONFIGS = REPO / "configs"
+
+
+def test_shipped_configs_all_load():
+    files = sorted(CONFIGS.glob("*.yaml"))
+    assert len(files) >= 6
+    for f in files:
+        raw = read_opencv_yaml(f)
+        if "model_type" in raw and "max_cnt" not in raw:
+            cam = load_camera(f)
+            assert cam.width > 0 and cam.height > 0
+        else:
+            cfg = load_config(f)
+            assert cfg.camera is not None, f
+            assert cfg.max_cnt > 0 and cfg.min_dist > 0
+
+
+def test_euroc_values():
+    cfg = load_config(CONFIGS / "euroc.yaml")
+    assert cfg.flavour == "mono"
+    assert (cfg.image_width, cfg.image_height) == (752, 480)
+    assert cfg.max_cnt == 150 and cfg.min_dist == 30 and cfg.freq == 10
+    assert cfg.F_threshold == 1.0 and cfg.equalize and not cfg.fisheye
+    cam = cfg.camera
+    assert type(cam).__name__ == "PinholeCamera"
+    p = cam.params_dict()
+    assert p["fx"] == pytest.approx(461.6) and p["k1"] == pytest.approx(-0.2917)
+    assert cfg.raw["extrinsicRotation"].shape == (3, 3)
+    assert "extrinsicTranslation" in cfg.raw  # unknown keys are kept
+
+
+def test_fusion_stereo_resolves_calibs():
+    cfg = load_config(CONFIGS / "euroc_stereo_mei.yaml")
+    assert cfg.flavour == "fusion" and cfg.num_of_cam == 2 and cfg.flow_back
+    assert type(cfg.camera).__name__ == "MeiCamera" and type(cfg.camera1).__name__ == "MeiCamera"
+    assert Path(cfg.cam0_calib).is_file() and Path(cfg.cam1_calib).is_file()
+    assert cfg.body_T_cam0.shape == (4, 4) and cfg.body_T_cam1[3, 3] == 1.0
+    mono = load_config(CONFIGS / "euroc_mono_mei.yaml")
+    assert mono.num_of_cam == 1 and mono.camera1 is None
+
+
+def test_kb_config():
+    cfg = load_config(CONFIGS / "tum_vi.yaml")
+    assert type(cfg.camera).__name__ == "KannalaBrandtCamera"
+    assert cfg.fisheye and cfg.min_dist == 25
+
+
+def _write(tmp_path, text, name="c.yaml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+MINI = """%YAML:1.0
+model_type: pinhole
+camera_name: cam
+image_width: 640
+image_height: 480
+distortion_parameters:
+   k1: 1e-3
+   k2: 0
+   p1: 0
+   p2: 0
+projection_parameters:
+   fx: 400.
+   fy: 401
+   cx: 320   # a comment
+   cy: 240
+max_cnt: 100
+min_dist: 20
+freq: 0
+"""
+
+
+def test_opencv_quirks(tmp_path):
+    p = _write(tmp_path, MINI + "M: !!opencv-matrix\n   rows: 2\n   cols: 2\n   dt: f\n   data: [1, 2, 3, 4e-1]\n")
+    cfg = load_config(p)
+    assert cfg.freq == 100  # freq 0 means 100 Hz (VINS-Mono)
+    assert cfg.camera.params_dict()["k1"] == pytest.approx(1e-3)  # '1e-3' is a number, as in OpenCV
+    m = cfg.raw["M"]
+    assert m.dtype == np.float32 and m.shape == (2, 2) and m[1, 1] == pytest.approx(0.4)
+    assert not cfg.equalize and not cfg.fisheye  # missing flags read as 0
+
+
+def test_missing_file():
+    with pytest.raises(ConfigError, match="nope.yaml.*not found"):
+        load_config("/nonexistent/nope.yaml")
+
+
+def test_missing_required_key(tmp_path):
+    p = _write(tmp_path, MINI.replace("max_cnt: 100\n", ""))
+    with pytest.raises(ConfigError, match=r"c\.yaml.*max_cnt"):
+        load_config(p)
+
+
+def test_wrong_type(tmp_path):
+    p = _write(tmp_path, MINI.replace("min_dist: 20", 'min_dist: "far"'))
+    with pytest.raises(ConfigError, match=r"min_dist.*integer"):
+        load_config(p)
+
+
+def test_unknown_model_type(tmp_path):
+    p = _write(tmp_path, MINI.replace("model_type: pinhole", "model_type: fancy"))
+    with pytest.raises(ConfigError, match=r"model_type.*fancy"):
+        load_config(p)
+
+
+def test_missing_camera_key(tmp_path):
+    p = _write(tmp_path, MINI.replace("   fx: 400.\n", ""))
+    with pytest.raises(ConfigError, match=r"fx"):
+        load_config(p)
+
+
+def test_missing_calib_file(tmp_path):
+    p = _write(tmp_path, "%YAML:1.0\ncam0_calib: \"nothere.yaml\"\nimage_width: 10\nimage_height: 10\n"
+               "max_cnt: 5\nmin_dist: 3\n")
+    with pytest.raises(ConfigError, match=r"cam0_calib.*nothere\.yaml"):
+        load_config(p)
+
+
+def test_bad_yaml(tmp_path):
+    p = _write(tmp_path, "%YAML:1.0\nkey: [unclosed\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml"):
+        load_config(p)
+
+
+def test_size_mismatch_warns(tmp_path):
+    cam = (CONFIGS / "euroc_cam0_mei.yaml").read_text()
+    _write(tmp_path, cam, "cam0.yaml")
+    p = _write(tmp_path, "%YAML:1.0\ncam0_calib: \"cam0.yaml\"\nimage_width: 600\nimage_height: 600\n"
+               "max_cnt: 5\nmin_dist: 3\n")
+    with pytest.warns(UserWarning, match=r"600x600.*752x480.*cam0\.yaml"):
+        cfg = load_config(p)
+    assert cfg.camera is not None
+
+
+def test_every_vins_config_loads():
+    """Every YAML shipped with VINS-Mono and VINS-Fusion (../shared/data/vins_configs) loads."""
+    root = SHARED_DATA / "vins_configs"
+    if not root.exists():
+        pytest.skip(f"../shared/data/vins_configs not found beside the repo ({root}); skipping the VINS-config sweep")
+    files = sorted(root.rglob("*.yaml"))
+    assert len(files) >= 50
+    n_cfg = n_cam = 0
+    for f in files:
+        raw = read_opencv_yaml(f)
+        is_camera_file = "model_type" in raw and not any(k in raw for k in ("max_cnt", "imu_topic", "cam0_calib"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            if is_camera_file:
+                cam = load_camera(f)
+                assert cam.width > 0
+                n_cam += 1
+            else:
+                cfg = load_config(f)
+                n_cfg += 1
+                if cfg.flavour == "estimator":
+                    assert cfg.camera is None
+                else:
+                    assert cfg.camera is not None, f
+        if f.name == "simulation_config.yaml" and "vins_fusion" in str(f):
+            # 600x600 in the main config, 752x480 in the camera files
+            assert any("disagrees" in str(w.message) for w in caught)
+    assert n_cfg >= 20 and n_cam >= 20
+    mono = load_config(root / "vins_mono" / "euroc" / "euroc_config.yaml")
+    assert mono.camera.params_dict()["fx"] == pytest.approx(461.6)
+    assert mono.max_cnt == 150 and mono.min_dist == 30 and mono.freq == 10
+    tum = load_config(root / "vins_mono" / "tum" / "tum_config.yaml")
+    assert tum.fisheye and type(tum.camera).__name__ == "KannalaBrandtCamera"
+    sim = load_config(root / "vins_mono" / "simulation" / "simulation_config.yaml")
+    assert sim.camera is None and sim.flavour == "estimator"

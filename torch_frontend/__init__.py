@@ -1,0 +1,62 @@
+"""torch-frontend: the VINS-Mono visual front end (KLT feature tracker) as batched, differentiable
+PyTorch/kornia tensor code.
+
+Public names are imported lazily from their modules (one concept per module), so that
+``import torch_frontend`` stays cheap and each kernel module can be used on its own.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+# public name -> module that defines it
+_EXPORTS = {
+    # foundation
+    "ConfigError": "errors",
+    "TrackerConfig": "config",
+    "load_config": "config",
+    "load_camera": "config",
+    "camera_from_config": "camera",
+    "CameraModel": "camera",
+    "PinholeCamera": "camera",
+    "PinholeFullCamera": "camera",
+    "MeiCamera": "camera",
+    "KannalaBrandtCamera": "camera",
+    "ScaramuzzaCamera": "camera",
+    # image stage
+    "clahe": "clahe",
+    "build_pyramid": "pyramid",
+    "pyr_down": "pyramid",
+    "scharr_gradients": "pyramid",
+    "Pyramid": "pyramid",
+    "min_eigen_response": "corners",
+    "harris_response": "corners",
+    "good_features_to_track": "corners",
+    "distance_mask": "masks",
+    "fisheye_mask": "masks",
+    # tracking
+    "track_lk": "lk",
+    "find_fundamental": "ransac",
+    "refit_fundamental": "ransac",
+    "FeatureTracker": "tracker",
+    "FeatureFrame": "tracker",
+    "draw_tracks": "viz",
+}
+
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    mod = _EXPORTS.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'torch_frontend' has no attribute '{name}'")
+    value = getattr(importlib.import_module(f".{mod}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

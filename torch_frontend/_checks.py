@@ -1,0 +1,105 @@
+"""Shared input checks and small tensor helpers used by every kernel.
+
+Kernels call these at their public boundary so that a wrong shape or type fails early with a
+message that names the argument, the expected shape and the given one (a ``ValueError``), rather
+than deep inside a ``grid_sample`` or ``conv2d``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence, Union
+
+import torch
+
+Shape = Sequence[Union[int, str, None]]
+
+
+def check_shape(t: torch.Tensor, shape: Shape, name: str) -> None:
+    """Check ``t`` against a shape pattern.
+
+    ``shape`` entries are ints (exact size), strings (named sizes that must agree with each other
+    across the same pattern, e.g. ``("B", "N", 2)``) or ``None`` (any size). A leading ``"*"``
+    allows any number of leading dimensions.
+
+    Raises:
+        ValueError: naming ``name``, the expected pattern and the given shape.
+    """
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(t).__name__}")
+    pattern = list(shape)
+    dims = list(t.shape)
+    if pattern and pattern[0] == "*":
+        pattern = pattern[1:]
+        ok = len(dims) >= len(pattern)
+        dims_tail = dims[len(dims) - len(pattern):] if ok else dims
+    else:
+        ok = len(dims) == len(pattern)
+        dims_tail = dims
+    named: dict = {}
+    if ok:
+        for want, got in zip(pattern, dims_tail):
+            if want is None:
+                continue
+            if isinstance(want, str):
+                if want in named and named[want] != got:
+                    ok = False
+                    break
+                named[want] = got
+            elif want != got:
+                ok = False
+                break
+    if not ok:
+        want_s = "(" + ", ".join("*" if p == "*" else ("?" if p is None else str(p)) for p in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want_s}, got {tuple(dims)}")
+
+
+def as_image_batch(img: torch.Tensor, name: str = "img") -> torch.Tensor:
+    """Return ``img`` as a ``(B, 1, H, W)`` tensor.
+
+    Accepts ``(B, 1, H, W)`` or ``(B, H, W)``; uint8 or floating point in 0..255. The dtype is
+    kept (callers decide whether they need float); only the layout is normalised.
+    """
+    if not isinstance(img, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(img).__name__}")
+    if img.dim() == 3:
+        img = img.unsqueeze(1)
+    if img.dim() != 4 or img.shape[1] != 1:
+        raise ValueError(f"{name}: expected shape (B, 1, H, W) or (B, H, W), got {tuple(img.shape)}")
+    if not (img.dtype == torch.uint8 or img.is_floating_point()):
+        raise TypeError(f"{name}: expected uint8 or floating point, got {img.dtype}")
+    return img
+
+
+def as_float_image(img: torch.Tensor, name: str = "img", dtype: Optional[torch.dtype] = None) -> torch.Tensor:
+    """``as_image_batch`` then convert to floating point (grey levels 0..255 are kept, not rescaled).
+
+    ``dtype`` defaults to the image's own float dtype, or float32 for uint8 input.
+    """
+    img = as_image_batch(img, name)
+    if dtype is None:
+        dtype = img.dtype if img.is_floating_point() else torch.float32
+    return img.to(dtype)
+
+
+def check_points(pts: torch.Tensor, name: str = "pts") -> None:
+    """Points are ``(B, N, 2)`` floating point pixels ``(x, y)``."""
+    check_shape(pts, ("B", "N", 2), name)
+    if not pts.is_floating_point():
+        raise TypeError(f"{name}: expected a floating point tensor, got {pts.dtype}")
+
+
+def default_valid(pts: torch.Tensor, valid: Optional[torch.Tensor], name: str = "valid") -> torch.Tensor:
+    """Return a ``(B, N)`` bool mask, all True when ``valid`` is None."""
+    if valid is None:
+        return torch.ones(pts.shape[:-1], dtype=torch.bool, device=pts.device)
+    check_shape(valid, tuple(pts.shape[:-1]), name)
+    return valid.to(torch.bool)
+
+
+def per_stream(value: Union[int, float, torch.Tensor], batch: int, device, dtype, name: str) -> torch.Tensor:
+    """Broadcast a scalar or a ``(B,)`` tensor to a ``(B,)`` tensor of ``dtype``."""
+    t = torch.as_tensor(value, device=device, dtype=dtype)
+    if t.dim() == 0:
+        return t.expand(batch).clone()
+    check_shape(t, (batch,), name)
+    return t

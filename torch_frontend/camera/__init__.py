@@ -1,0 +1,26 @@
+"""camodocal camera models (``liftProjective`` / ``spaceToPlane``) as batched, differentiable torch modules.
+
+Models: ``PinholeCamera`` (``PINHOLE``), ``PinholeFullCamera`` (``PINHOLE_FULL``), ``MeiCamera``
+(``MEI``), ``KannalaBrandtCamera`` (``KANNALA_BRANDT``), ``ScaramuzzaCamera`` (``scaramuzza``); all
+derive from ``CameraModel`` (``lift``, ``project``, ``undistort``, ``params_dict``, ``from_params``).
+``camera_from_config`` builds one from a camodocal/VINS YAML parsed by
+``torch_frontend.io.read_opencv_yaml``. See ``base.py`` for the shared conventions.
+"""
+
+from .base import CameraModel
+from .factory import MODELS, camera_from_config
+from .kannala_brandt import KannalaBrandtCamera
+from .mei import MeiCamera
+from .pinhole import PinholeCamera, PinholeFullCamera
+from .scaramuzza import ScaramuzzaCamera
+
+__all__ = [
+    "CameraModel",
+    "PinholeCamera",
+    "PinholeFullCamera",
+    "MeiCamera",
+    "KannalaBrandtCamera",
+    "ScaramuzzaCamera",
+    "camera_from_config",
+    "MODELS",
+]

@@ -1,0 +1,251 @@
+"""VINS configuration files: ``load_config`` (VINS-Mono and VINS-Fusion) and ``load_camera``.
+
+Convention:
+    Keys keep their VINS names (``max_cnt``, ``min_dist``, ``F_threshold``, ...). Values are read
+    as VINS reads them (spec §1): ``freq: 0`` means 100 Hz for VINS-Mono, a missing flag
+    (``equalize``, ``fisheye``, ``flow_back``, ``show_track``) is 0. VINS-Fusion's ``cam0_calib`` /
+    ``cam1_calib`` are resolved relative to the config file's folder. Every key of the file,
+    known or not, is kept in ``TrackerConfig.raw``.
+
+A VINS-Mono config (a camodocal block in the same file) must give ``image_width``,
+``image_height``, ``max_cnt`` and ``min_dist``; a VINS-Fusion config (``cam0_calib``) must give
+``image_width`` and ``image_height`` (``max_cnt``/``min_dist`` read as 0 when absent, as in VINS, and
+``FeatureTracker`` then refuses the config by name). A config with neither (an estimator-only config such as VINS's simulation config)
+loads with ``camera=None`` and the tracker keys left at their defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Union
+
+import numpy as np
+
+from .errors import ConfigError
+from .io.fsyaml import read_opencv_yaml
+
+PathLike = Union[str, Path]
+
+# Keys that make a camodocal camera block in a VINS-Mono config.
+_CAMERA_BLOCK_KEYS = ("model_type", "projection_parameters")
+_REQUIRED = {
+    # VINS-Mono's feature_tracker node reads these from the same file
+    "mono": ("image_width", "image_height", "max_cnt", "min_dist"),
+    # VINS-Fusion's estimator needs ROW/COL; its simulation config has no tracker keys (a data
+    # generator publishes the features), so max_cnt/min_dist read as 0 there, as in VINS
+    "fusion": ("image_width", "image_height"),
+    "estimator": (),
+}
+
+
+@dataclasses.dataclass
+class TrackerConfig:
+    """Front-end settings from a VINS config file (VINS key names).
+
+    Attributes:
+        path: the config file.
+        flavour: ``"mono"`` (camera block in the file) or ``"fusion"`` (``camN_calib`` files);
+            ``"estimator"`` when the file has no camera at all.
+        image_width, image_height: ``COL``, ``ROW`` in pixels.
+        max_cnt: maximum number of tracked + new features per frame.
+        min_dist: GFTT minimum distance and setMask disc radius (pixels).
+        freq: publish rate in Hz (VINS-Mono rule: 0 in the file means 100).
+        F_threshold: F-RANSAC threshold in virtual-pinhole pixels.
+        show_track, equalize, fisheye, flow_back: VINS flags as bools.
+        num_of_cam: 1 or 2 (VINS-Fusion); 1 for VINS-Mono.
+        camera: the camodocal model of camera 0 (a ``torch_frontend.camera.CameraModel``), or None.
+        camera1: camera 1 for stereo VINS-Fusion configs, else None.
+        body_T_cam0, body_T_cam1: 4×4 float64 extrinsics when the file gives them (VINS-Fusion).
+        raw: every key of the file as read (matrices as numpy arrays).
+    """
+
+    path: Optional[str] = None
+    flavour: str = "mono"
+    image_topic: str = ""
+    imu_topic: str = ""
+    image0_topic: str = ""
+    image1_topic: str = ""
+    image_width: int = 0
+    image_height: int = 0
+    max_cnt: int = 150
+    min_dist: int = 30
+    freq: int = 10
+    F_threshold: float = 1.0
+    show_track: bool = False
+    equalize: bool = False
+    fisheye: bool = False
+    flow_back: bool = False
+    num_of_cam: int = 1
+    cam0_calib: Optional[str] = None
+    cam1_calib: Optional[str] = None
+    camera: Any = None
+    camera1: Any = None
+    body_T_cam0: Optional[np.ndarray] = None
+    body_T_cam1: Optional[np.ndarray] = None
+    raw: Dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
+
+    def summary(self) -> str:
+        """A few human-readable lines (what ``make demo`` prints)."""
+        lines = [
+            f"config        {self.path} ({self.flavour})",
+            f"image         {self.image_width} x {self.image_height}",
+            f"max_cnt       {self.max_cnt}   min_dist {self.min_dist}   freq {self.freq} Hz"
+            f"   F_threshold {self.F_threshold}",
+            f"equalize      {int(self.equalize)}   fisheye {int(self.fisheye)}   flow_back {int(self.flow_back)}"
+            f"   num_of_cam {self.num_of_cam}",
+            f"camera        {self.camera!r}",
+        ]
+        if self.camera1 is not None:
+            lines.append(f"camera1       {self.camera1!r}")
+        return "\n".join(lines)
+
+
+def _get_int(raw: Dict[str, Any], key: str, path: str, default: Optional[int]) -> Optional[int]:
+    if key not in raw or raw[key] is None:
+        return default
+    v = raw[key]
+    if isinstance(v, bool):
+        return int(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, float) and math.isfinite(v) and v == int(v):
+        return int(v)
+    raise ConfigError(f"expected an integer, got {v!r}", path, key)
+
+
+def _get_float(raw: Dict[str, Any], key: str, path: str, default: Optional[float]) -> Optional[float]:
+    if key not in raw or raw[key] is None:
+        return default
+    v = raw[key]
+    if isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
+        if not math.isfinite(float(v)):
+            raise ConfigError(f"expected a finite number, got {v!r}", path, key)
+        return float(v)
+    raise ConfigError(f"expected a number, got {v!r}", path, key)
+
+
+def _get_str(raw: Dict[str, Any], key: str, path: str, default: str = "") -> str:
+    if key not in raw or raw[key] is None:
+        return default
+    v = raw[key]
+    if not isinstance(v, str):
+        raise ConfigError(f"expected a string, got {v!r}", path, key)
+    return v
+
+
+def _get_matrix(raw: Dict[str, Any], key: str, path: str, shape) -> Optional[np.ndarray]:
+    if key not in raw:
+        return None
+    v = raw[key]
+    if not isinstance(v, np.ndarray):
+        raise ConfigError(f"expected an !!opencv-matrix of shape {shape}, got {type(v).__name__}", path, key)
+    if v.shape != tuple(shape):
+        raise ConfigError(f"expected a matrix of shape {tuple(shape)}, got {v.shape}", path, key)
+    return v.astype(np.float64)
+
+
+def load_camera(path: PathLike):
+    """Load a camodocal camera YAML (``model_type`` PINHOLE, MEI, KANNALA_BRANDT, SCARAMUZZA,
+    PINHOLE_FULL, any letter case) and return the camera model.
+
+    Raises:
+        ConfigError: the file is missing or unreadable, a key is missing or has the wrong type,
+            or ``model_type`` is unknown; the message names the file and the key.
+    """
+    from .camera import camera_from_config
+
+    raw = read_opencv_yaml(path)
+    return camera_from_config(raw, path=str(path))
+
+
+def _has_camera_block(raw: Dict[str, Any]) -> bool:
+    return any(k in raw for k in _CAMERA_BLOCK_KEYS)
+
+
+def _check_size(cfg: TrackerConfig, cam, cam_path: str) -> None:
+    w, h = getattr(cam, "width", None), getattr(cam, "height", None)
+    if cfg.image_width and cfg.image_height and w and h and (w, h) != (cfg.image_width, cfg.image_height):
+        warnings.warn(
+            f"image size {cfg.image_width}x{cfg.image_height} in {cfg.path} disagrees with "
+            f"{w}x{h} in camera file {cam_path}",
+            stacklevel=3,
+        )
+
+
+def load_config(path: PathLike) -> TrackerConfig:
+    """Read a VINS-Mono or VINS-Fusion config file (OpenCV FileStorage YAML) into a ``TrackerConfig``.
+
+    Args:
+        path: the config YAML. VINS-Fusion's ``cam0_calib``/``cam1_calib`` are read relative to its
+            folder.
+
+    Returns:
+        The config, with ``camera`` (and ``camera1`` for stereo) built from the camera block or
+        calibration files, or ``camera=None`` for an estimator-only config.
+
+    Raises:
+        ConfigError: a missing file, a missing required key, a wrong type or an unknown
+            ``model_type``; the message names the file, the key and what was expected.
+    """
+    from .camera import camera_from_config
+
+    p = Path(path)
+    raw = read_opencv_yaml(p)
+    sp = str(p)
+    cfg = TrackerConfig(path=sp, raw=raw)
+
+    has_block = _has_camera_block(raw)
+    has_calib = "cam0_calib" in raw
+    cfg.flavour = "fusion" if has_calib else ("mono" if has_block else "estimator")
+
+    for key in _REQUIRED[cfg.flavour]:
+        if key not in raw:
+            raise ConfigError(f"required in a VINS-{cfg.flavour.capitalize()} config, but missing (expected an integer)",
+                              sp, key)
+    tracker_default = 0 if cfg.flavour == "fusion" else None
+
+    cfg.image_topic = _get_str(raw, "image_topic", sp)
+    cfg.imu_topic = _get_str(raw, "imu_topic", sp)
+    cfg.image0_topic = _get_str(raw, "image0_topic", sp)
+    cfg.image1_topic = _get_str(raw, "image1_topic", sp)
+    cfg.image_width = _get_int(raw, "image_width", sp, 0)
+    cfg.image_height = _get_int(raw, "image_height", sp, 0)
+    cfg.max_cnt = _get_int(raw, "max_cnt", sp, 150 if tracker_default is None else tracker_default)
+    cfg.min_dist = _get_int(raw, "min_dist", sp, 30 if tracker_default is None else tracker_default)
+    freq = _get_int(raw, "freq", sp, 10)
+    cfg.freq = 100 if freq == 0 else freq  # VINS-Mono: FREQ 0 means 100 Hz
+    cfg.F_threshold = _get_float(raw, "F_threshold", sp, 1.0)
+    for flag in ("show_track", "equalize", "fisheye", "flow_back"):
+        setattr(cfg, flag, bool(_get_int(raw, flag, sp, 0)))
+    cfg.num_of_cam = _get_int(raw, "num_of_cam", sp, 1)
+    if cfg.num_of_cam not in (1, 2):
+        raise ConfigError(f"must be 1 or 2, got {cfg.num_of_cam}", sp, "num_of_cam")
+    for key in _REQUIRED[cfg.flavour]:
+        if getattr(cfg, key) <= 0:
+            raise ConfigError(f"must be a positive integer, got {getattr(cfg, key)}", sp, key)
+    cfg.body_T_cam0 = _get_matrix(raw, "body_T_cam0", sp, (4, 4))
+    cfg.body_T_cam1 = _get_matrix(raw, "body_T_cam1", sp, (4, 4))
+
+    if has_block and not has_calib:
+        cfg.camera = camera_from_config(raw, path=sp)
+        _check_size(cfg, cfg.camera, sp)
+    if has_calib:
+        calibs: List[str] = ["cam0_calib"] + (["cam1_calib"] if cfg.num_of_cam == 2 else [])
+        for i, key in enumerate(calibs):
+            name = _get_str(raw, key, sp)
+            if not name:
+                raise ConfigError("expected a camera calibration file name", sp, key)
+            cam_path = (p.parent / name).resolve()
+            if not cam_path.is_file():
+                raise ConfigError(f"camera calibration file not found: {cam_path}", sp, key)
+            cam = load_camera(cam_path)
+            _check_size(cfg, cam, str(cam_path))
+            setattr(cfg, key, str(cam_path))
+            setattr(cfg, "camera" if i == 0 else "camera1", cam)
+    return cfg
+
+
+__all__ = ["TrackerConfig", "load_config", "load_camera", "ConfigError"]

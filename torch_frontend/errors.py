@@ -1,0 +1,21 @@
+"""Exception types of torch-frontend."""
+
+from __future__ import annotations
+
+
+class ConfigError(ValueError):
+    """A VINS config or camodocal camera file is missing, unreadable or malformed.
+
+    The message names the file, the key (where one is at fault) and what was expected.
+    """
+
+    def __init__(self, message: str, path=None, key=None):
+        self.path = None if path is None else str(path)
+        self.key = key
+        where = []
+        if self.path:
+            where.append(f"{self.path}")
+        if key:
+            where.append(f"key '{key}'")
+        prefix = ": ".join(where)
+        super().__init__(f"{prefix}: {message}" if prefix else message)

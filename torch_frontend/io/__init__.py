@@ -1,0 +1,28 @@
+"""Readers: OpenCV FileStorage YAML, datasets (EuRoC/TUM-VI ASL folders, image folders, ROS bags)."""
+
+from .euroc import EurocSequence, camera_from_sensor_yaml, config_from_sensor_yaml, euroc_config
+from .folder import ImageFolderSequence
+from .frames import DataError, Frame, Sequence, decode_image, read_image
+from .fsyaml import read_opencv_yaml
+from .multistream import Batch, MultiStream
+from .rosbag import RosbagSequence, list_image_topics
+from .sources import open_sequence
+
+__all__ = [
+    "read_opencv_yaml",
+    "DataError",
+    "Frame",
+    "Sequence",
+    "read_image",
+    "decode_image",
+    "EurocSequence",
+    "ImageFolderSequence",
+    "RosbagSequence",
+    "list_image_topics",
+    "camera_from_sensor_yaml",
+    "config_from_sensor_yaml",
+    "euroc_config",
+    "MultiStream",
+    "Batch",
+    "open_sequence",
+]

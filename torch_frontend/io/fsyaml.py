@@ -1,0 +1,91 @@
+"""Reader for OpenCV ``FileStorage`` YAML as VINS and camodocal ship it.
+
+OpenCV's dialect is not plain YAML (see the spec §1.1): the first line is ``%YAML:1.0`` (PyYAML
+rejects it), matrices are tagged ``!!opencv-matrix`` with ``rows``/``cols``/``dt``/``data``, and
+OpenCV reads ``1e-3`` as a number where PyYAML's YAML 1.1 resolver reads a string. This module
+strips the header, turns matrices into numpy arrays of the right shape and dtype, and coerces
+number-like strings.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, Dict, Union
+
+import numpy as np
+import yaml
+
+from ..errors import ConfigError
+
+_DT = {"d": np.float64, "f": np.float32, "i": np.int32, "u": np.uint8, "s": np.int16, "w": np.uint16, "c": np.int8}
+_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+def _construct_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> Dict[str, Any]:
+    mapping = loader.construct_mapping(node, deep=True)
+    return {"__opencv_matrix__": True, **mapping}
+
+
+_Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", _construct_matrix)
+_Loader.add_constructor("!opencv-matrix", _construct_matrix)
+
+
+def _coerce(value: Any, path: str, key: str) -> Any:
+    if isinstance(value, dict):
+        if value.get("__opencv_matrix__"):
+            return _matrix(value, path, key)
+        return {k: _coerce(v, path, f"{key}.{k}" if key else str(k)) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_coerce(v, path, key) for v in value]
+    if isinstance(value, str) and _NUMBER.match(value.strip()):
+        s = value.strip()
+        return int(s) if re.fullmatch(r"[+-]?\d+", s) else float(s)
+    return value
+
+
+def _matrix(node: Dict[str, Any], path: str, key: str) -> np.ndarray:
+    try:
+        rows, cols = int(node["rows"]), int(node["cols"])
+        data = [float(_coerce(v, path, key)) for v in node["data"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"malformed !!opencv-matrix (need rows, cols, data): {exc}", path, key) from None
+    dtype = _DT.get(str(node.get("dt", "d"))[:1], np.float64)
+    if len(data) != rows * cols:
+        raise ConfigError(f"!!opencv-matrix has {len(data)} values, expected rows*cols = {rows * cols}", path, key)
+    return np.asarray(data, dtype=np.float64).astype(dtype).reshape(rows, cols)
+
+
+def read_opencv_yaml(path: Union[str, Path]) -> Dict[str, Any]:
+    """Read an OpenCV FileStorage YAML file into a dict.
+
+    Matrices become ``numpy.ndarray`` of shape ``(rows, cols)`` and their ``dt`` dtype; number-like
+    strings such as ``1e-3`` become floats. Raises ``ConfigError`` naming the file when it is
+    missing or not parseable.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError("file not found" if not p.exists() else "not a file", p)
+    try:
+        text = p.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise ConfigError(f"cannot read: {exc}", p) from None
+    lines = text.splitlines()
+    # OpenCV's own header: '%YAML:1.0' (or '%YAML 1.0'); PyYAML rejects the colon form.
+    if lines and lines[0].lstrip().startswith("%YAML"):
+        lines = lines[1:]
+    body = "\n".join(lines)
+    try:
+        docs = [d for d in yaml.load_all(body, Loader=_Loader) if d is not None]
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid OpenCV YAML: {exc}", p) from None
+    if not docs:
+        return {}
+    data = docs[0]
+    if not isinstance(data, dict):
+        raise ConfigError(f"expected a mapping at the top level, got {type(data).__name__}", p)
+    return _coerce(data, str(p), "")
