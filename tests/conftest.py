@@ -33,7 +33,8 @@ def sample_frames(camera: str = "cam0"):
     return sorted((SAMPLE / "mav0" / camera / "data").glob("*.png"))
 
 
-def load_gray(path) -> "torch.Tensor":
+def load_gray(path):
+    """(H, W) uint8 numpy array of a grey image."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)

@@ -16,6 +16,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     # foundation
     "ConfigError": "errors",
+    "DataError": "errors",
     "TrackerConfig": "config",
     "load_config": "config",
     "load_camera": "config",
@@ -41,6 +42,7 @@ _EXPORTS = {
     "track_lk": "lk",
     "find_fundamental": "ransac",
     "refit_fundamental": "ransac",
+    "FundamentalResult": "ransac",
     "FeatureTracker": "tracker",
     "FeatureFrame": "tracker",
     "draw_tracks": "viz",

@@ -49,7 +49,8 @@ def check_shape(t: torch.Tensor, shape: Shape, name: str) -> None:
                 ok = False
                 break
     if not ok:
-        want_s = "(" + ", ".join("*" if p == "*" else ("?" if p is None else str(p)) for p in shape) + ")"
+        parts = ["*" if p == "*" else ("?" if p is None else str(p)) for p in shape]
+        want_s = "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
         raise ValueError(f"{name}: expected shape {want_s}, got {tuple(dims)}")
 
 

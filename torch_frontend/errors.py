@@ -19,3 +19,11 @@ class ConfigError(ValueError):
             where.append(f"key '{key}'")
         prefix = ": ".join(where)
         super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class DataError(ValueError):
+    """Input data is missing, unreadable or inconsistent (a user error, not a bug).
+
+    The message says what is wrong and where (file, folder, bag, topic); the CLI prints it as one
+    line and exits with a non-zero code.
+    """

@@ -4,9 +4,19 @@ from .euroc import EurocSequence, camera_from_sensor_yaml, config_from_sensor_ya
 from .folder import ImageFolderSequence
 from .frames import DataError, Frame, Sequence, decode_image, read_image
 from .fsyaml import read_opencv_yaml
-from .multistream import Batch, MultiStream
 from .rosbag import RosbagSequence, list_image_topics
 from .sources import open_sequence
+
+
+def __getattr__(name):
+    # MultiStream/Batch need torch; importing them lazily keeps ``torch_frontend.config`` (which
+    # imports ``io.fsyaml``, hence this package) free of a torch import.
+    if name in ("MultiStream", "Batch"):
+        from . import multistream
+
+        return getattr(multistream, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "read_opencv_yaml",

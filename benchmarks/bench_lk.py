@@ -1,0 +1,161 @@
+"""Pyramidal LK benchmark: ``track_lk`` vs ``cv2.calcOpticalFlowPyrLK`` on 752x480 EuRoC frames.
+
+Cases: N = 150 and 1000 points (``goodFeaturesToTrack`` corners of the previous frame), B = 1, 8, 64
+streams (consecutive-frame pairs of the sample sequence, reused cyclically), win 21, maxLevel 3,
+30 iterations / eps 0.01, uint8 input (fixed-point emulation, OpenCV's default path). Both sides
+build their pyramids inside the call. OpenCV has no batch: it runs the B pairs one after the
+other. ``torch`` runs eager and with ``torch.compile`` of the per-iteration kernel
+(``torch_frontend.lk.compile_step``); a compile failure is caught and reported in the table.
+
+Prints a markdown table (median ms, ratio torch / OpenCV: < 1 means torch is faster) and writes
+``benchmarks/results/lk.json`` (temp file + rename). Runtime: a few minutes on 2 cores
+(``--quick`` skips B = 64 with N = 1000). Both libraries use ``--threads`` intra-op threads
+(default 1).
+
+Usage: ``python benchmarks/bench_lk.py [--device cpu|cuda] [--repeat N] [--threads T] [--no-compile] [--quick]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from torch_frontend import lk as lk_mod  # noqa: E402
+from torch_frontend.lk import track_lk  # noqa: E402
+
+FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
+CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def _time(fn, repeat, device, budget_s=20.0):
+    """Median ms over ``repeat`` runs after one warm-up; fewer runs when a call is slow."""
+    t0 = time.perf_counter()
+    fn()  # warm-up (and compilation)
+    _sync(device)
+    first = time.perf_counter() - t0
+    n = max(1, min(repeat, int(budget_s / max(first, 1e-6))))
+    ts = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(ts), n
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="skip B=64 x N=1000")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="intra-op threads for torch and OpenCV alike (default 1: a fair single-core comparison, "
+                         "and robust on a busy machine)")
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "lk.json"))
+    args = ap.parse_args(argv)
+    device = torch.device(args.device)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+        cv2.setNumThreads(args.threads)
+
+    paths = sorted(FRAMES.glob("*.png"))
+    frames = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths]
+    npairs = len(frames) - 1
+    pts_by_n = {}
+    for n in (150, 1000):
+        per = []
+        for i in range(npairs):
+            c = cv2.goodFeaturesToTrack(frames[i], n, 0.001, 5).reshape(-1, 2)
+            c = np.concatenate([c, c[: n - len(c)] + 0.5]) if len(c) < n else c  # pad to exactly n
+            per.append(c[:n].astype(np.float32))
+        pts_by_n[n] = per
+
+    modes = ["eager"] + ([] if args.no_compile else ["compile"])
+    rows, notes = [], []
+    for mode in modes:
+        if mode == "compile":
+            try:
+                lk_mod.compile_step(True)
+            except Exception as e:  # noqa: BLE001 - report, keep the eager numbers
+                notes.append(f"torch.compile unavailable: {type(e).__name__}: {e}")
+                break
+        for n in (150, 1000):
+            for B in (1, 8, 64):
+                if args.quick and B == 64 and n == 1000:
+                    continue
+                idx = [b % npairs for b in range(B)]
+                prev = torch.from_numpy(np.stack([frames[i] for i in idx]))[:, None].to(device)
+                nxt = torch.from_numpy(np.stack([frames[i + 1] for i in idx]))[:, None].to(device)
+                pts = torch.from_numpy(np.stack([pts_by_n[n][i] for i in idx])).to(device)
+
+                def run_cv(idx=idx, n=n):
+                    for i in idx:
+                        cv2.calcOpticalFlowPyrLK(frames[i], frames[i + 1], pts_by_n[n][i], None, winSize=(21, 21),
+                                                 maxLevel=3, criteria=CRIT)
+
+                row = {"mode": mode, "N": n, "B": B}
+                try:
+                    t_torch, reps = _time(lambda prev=prev, nxt=nxt, pts=pts: track_lk(prev, nxt, pts),
+                                          args.repeat, device)
+                    row.update(torch_ms=round(t_torch, 2), torch_reps=reps)
+                except Exception as e:  # noqa: BLE001 - e.g. a compile failure at first call
+                    row.update(torch_ms=None, error=f"{type(e).__name__}: {str(e).splitlines()[0][:200]}")
+                    notes.append(f"{mode} N={n} B={B}: {row['error']}")
+                    traceback.print_exc()
+                t_cv, _ = _time(run_cv, args.repeat, torch.device("cpu"))
+                row["opencv_ms"] = round(t_cv, 2)
+                row["ratio"] = None if row["torch_ms"] is None else round(row["torch_ms"] / t_cv, 2)
+                rows.append(row)
+                print(row, flush=True)
+    lk_mod.compile_step(False)
+
+    print(f"\nPyramidal LK, 752x480, win 21, maxLevel 3, device {device}, torch {torch.__version__} "
+          f"({torch.get_num_threads()} threads), OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads)\n")
+    print("| mode | N | B | torch ms | OpenCV ms | ratio torch/OpenCV | torch ms / stream |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        t = "fail" if r["torch_ms"] is None else f"{r['torch_ms']:.1f}"
+        ratio = "-" if r["ratio"] is None else f"{r['ratio']:.2f}"
+        per = "-" if r["torch_ms"] is None else f"{r['torch_ms'] / r['B']:.1f}"
+        print(f"| {r['mode']} | {r['N']} | {r['B']} | {t} | {r['opencv_ms']:.1f} | {ratio} | {per} |")
+    for note in notes:
+        print(f"\nnote: {note}")
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"device": str(device), "torch": torch.__version__, "opencv": cv2.__version__,
+            "torch_threads": torch.get_num_threads(), "opencv_threads": cv2.getNumThreads(),
+            "machine": platform.machine(), "size": [752, 480], "repeat": args.repeat,
+            "params": {"win_size": 21, "max_level": 3, "max_iters": 30, "eps": 0.01, "input": "uint8"},
+            "note": "OpenCV runs the B pairs sequentially; both sides build pyramids inside the call",
+            "notes": notes}
+    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump({"meta": meta, "rows": rows}, f, indent=2)
+    os.replace(tmp, out)
+    print(f"\nwrote {out}")
+
+
+if __name__ == "__main__":
+    main()

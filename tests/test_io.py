@@ -1,0 +1,441 @@
+"""Dataset readers (EuRoC/ASL folders, image folders, ROS 1/2 bags), MultiStream and output writers.
+
+Fixtures are built in ``tmp_path`` from a few of the repo's sample EuRoC frames; the bags are
+written in the test with the ``rosbags`` writers and typestore serialisation.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import REPO, SAMPLE, load_gray, sample_frames, shared_data_or_skip
+from torch_frontend.errors import ConfigError
+from torch_frontend.io import (
+    DataError,
+    EurocSequence,
+    ImageFolderSequence,
+    MultiStream,
+    RosbagSequence,
+    camera_from_sensor_yaml,
+    config_from_sensor_yaml,
+    list_image_topics,
+    open_sequence,
+    read_image,
+)
+from torch_frontend.io.multistream import ns_to_seconds
+
+TOPIC = "/cam0/image_raw"
+
+
+# ----------------------------------------------------------------------------------------------
+# fixture builders (also used by tests/test_cli.py)
+
+
+CROP = (192, 256)  # (H, W) of the small test frames: rows 144.., cols 248.. of the sample
+
+
+def crop(img: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(img[144:144 + CROP[0], 248:248 + CROP[1]])
+
+
+def make_asl(root: Path, n: int = 4, camera: str = "cam0", frames=None, small: bool = False) -> Path:
+    """An ASL folder ``root/mav0/<camera>`` with the first ``n`` sample frames (``small``: cropped
+    to ``CROP``, use ``small_config``), data.csv and sensor.yaml."""
+    src = SAMPLE / "mav0" / "cam0"
+    cam = root / "mav0" / camera
+    (cam / "data").mkdir(parents=True)
+    frames = list(frames if frames is not None else sample_frames("cam0")[:n])
+    lines = ["#timestamp [ns],filename"]
+    for f in frames:
+        if small:
+            assert cv2.imwrite(str(cam / "data" / f.name), crop(load_gray(f)))
+        else:
+            shutil.copy(f, cam / "data" / f.name)
+        lines.append(f"{f.stem},{f.name}")
+    (cam / "data.csv").write_text("\n".join(lines) + "\n")
+    yaml = (src / "sensor.yaml").read_text()
+    if small:  # the crop's size and principal point
+        yaml = yaml.replace("resolution: [752, 480]", f"resolution: [{CROP[1]}, {CROP[0]}]").replace(
+            "367.215, 248.375", f"{367.215 - 248}, {248.375 - 144}")
+    (cam / "sensor.yaml").write_text(yaml)
+    return root
+
+
+def small_config(tmp_path: Path, max_cnt: int = 60) -> Path:
+    """``configs/euroc.yaml`` for ``CROP``-sized frames (principal point moved with the crop)."""
+    text = (REPO / "configs" / "euroc.yaml").read_text()
+    text = text.replace("image_width: 752", f"image_width: {CROP[1]}").replace(
+        "image_height: 480", f"image_height: {CROP[0]}")
+    text = text.replace("cx: 3.630e+02", "cx: 115.0").replace("cy: 2.481e+02", "cy: 104.1")
+    text = text.replace("max_cnt: 150", f"max_cnt: {max_cnt}")
+    p = tmp_path / "small.yaml"
+    p.write_text(text)
+    return p
+
+
+def write_bag(path: Path, frames, version: int = 1, topic: str = TOPIC, encoding: str = "mono8",
+              compressed: bool = False) -> Path:
+    """A ROS 1 (``version=1``, ``path`` ending in .bag) or ROS 2 bag of ``[(stamp_ns, gray image)]``."""
+    from rosbags.typesys import Stores, get_typestore
+
+    if version == 1:
+        from rosbags.rosbag1 import Writer
+
+        ts = get_typestore(Stores.ROS1_NOETIC)
+        writer, ser = Writer(path), ts.serialize_ros1
+    else:
+        from rosbags.rosbag2 import Writer
+
+        ts = get_typestore(Stores.ROS2_HUMBLE)
+        writer, ser = Writer(path, version=9), ts.serialize_cdr
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    msgtype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
+    Msg = ts.types[msgtype]
+    seq = {"seq": 0} if "seq" in Header.__dataclass_fields__ else {}
+    with writer as w:
+        conn = w.add_connection(topic, msgtype, typestore=ts)
+        other = w.add_connection("/imu0", "std_msgs/msg/String", typestore=ts)
+        for i, (stamp, img) in enumerate(frames):
+            header = Header(stamp=Time(sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="cam0", **seq)
+            if compressed:
+                ok, buf = cv2.imencode(".png", img)
+                assert ok
+                msg = Msg(header=header, format="mono8; png compressed", data=buf.ravel())
+            else:
+                if encoding == "mono8":
+                    data = img
+                elif encoding == "bgr8":
+                    data = np.repeat(img[:, :, None], 3, axis=2)
+                elif encoding == "rgb8":
+                    data = np.repeat(img[:, :, None], 3, axis=2)
+                else:
+                    raise ValueError(encoding)
+                c = 1 if data.ndim == 2 else 3
+                msg = Msg(header=header, height=img.shape[0], width=img.shape[1], encoding=encoding,
+                          is_bigendian=0, step=img.shape[1] * c, data=np.ascontiguousarray(data).ravel())
+            w.write(conn, stamp + 1000, ser(msg, msgtype))
+            if i == 0:
+                S = ts.types["std_msgs/msg/String"]
+                w.write(other, stamp, ser(S(data="x"), "std_msgs/msg/String"))
+    return path
+
+
+def small_frames(n: int = 3, crop=(96, 128)):
+    """``[(stamp_ns, crop of a sample frame)]`` for quick bags."""
+    out = []
+    for f in sample_frames("cam0")[:n]:
+        out.append((int(f.stem), np.ascontiguousarray(load_gray(f)[100:100 + crop[0], 200:200 + crop[1]])))
+    return out
+
+
+def truncate(path: Path, keep: float = 0.5) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+
+
+# ----------------------------------------------------------------------------------------------
+# images
+
+
+def test_read_image_matches_cv2():
+    f = sample_frames("cam0")[0]
+    img = read_image(f)
+    assert img.dtype == np.uint8 and img.shape == (480, 752)
+    np.testing.assert_array_equal(img, load_gray(f))
+
+
+def test_bad_png_files(tmp_path):
+    f = sample_frames("cam0")[0]
+    t = tmp_path / "t.png"
+    shutil.copy(f, t)
+    truncate(t)
+    with pytest.raises(DataError, match=r"t\.png: truncated PNG"):
+        read_image(t)
+    c = tmp_path / "c.png"
+    data = bytearray(f.read_bytes())
+    data[5000] ^= 0xFF
+    c.write_bytes(bytes(data))
+    with pytest.raises(DataError, match=r"c\.png: corrupt PNG \(CRC mismatch"):
+        read_image(c)
+    e = tmp_path / "e.png"
+    e.write_bytes(b"")
+    with pytest.raises(DataError, match="empty image file"):
+        read_image(e)
+    with pytest.raises(DataError, match="image file not found"):
+        read_image(tmp_path / "missing.png")
+    j = tmp_path / "j.jpg"
+    j.write_bytes(b"not a jpeg at all")
+    with pytest.raises(DataError, match="cannot decode image"):
+        read_image(j)
+
+
+def test_colour_and_16bit_images_become_gray(tmp_path):
+    g = load_gray(sample_frames("cam0")[0])[:50, :60]
+    cv2.imwrite(str(tmp_path / "c.png"), np.repeat(g[:, :, None], 3, axis=2))
+    np.testing.assert_array_equal(read_image(tmp_path / "c.png"), g)
+    cv2.imwrite(str(tmp_path / "w.png"), g.astype(np.uint16) * 256 + 77)
+    np.testing.assert_array_equal(read_image(tmp_path / "w.png"), g)
+
+
+# ----------------------------------------------------------------------------------------------
+# EuRoC / ASL
+
+
+def test_euroc_reader(tmp_path):
+    root = make_asl(tmp_path / "seq", n=4)
+    frames_src = sample_frames("cam0")[:4]
+    for arg in (root, root / "mav0", root / "mav0" / "cam0"):
+        seq = EurocSequence(arg)
+        assert len(seq) == 4
+    frames = list(seq)
+    assert [f.stamp_ns for f in frames] == [int(p.stem) for p in frames_src]
+    assert frames[0].stamp_ns == 1403715273262142976  # exact ns, no float rounding
+    for f, p in zip(frames, frames_src):
+        np.testing.assert_array_equal(f.image, load_gray(p))
+    assert abs(frames[1].timestamp - frames[0].timestamp - 0.05) < 1e-6
+
+
+def test_euroc_sensor_yaml_camera(tmp_path):
+    from torch_frontend.camera import PinholeCamera
+
+    cam = camera_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
+    assert isinstance(cam, PinholeCamera)
+    assert (cam.width, cam.height) == (752, 480)
+    p = cam.params_dict()
+    assert float(p["fx"]) == 458.654 and float(p["cy"]) == 248.375 and float(p["k1"]) == -0.28340811
+    # the parameter mapping agrees with OpenCV's radial-tangential projection
+    rng = np.random.default_rng(0)
+    P = np.concatenate([rng.uniform(-0.6, 0.6, (50, 2)), np.ones((50, 1))], axis=1)
+    K = np.array([[458.654, 0, 367.215], [0, 457.296, 248.375], [0, 0, 1.0]])
+    dist = np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
+    ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)
+    got = cam.project(torch.from_numpy(P)).numpy()
+    np.testing.assert_allclose(got, ref[:, 0], atol=1e-9)
+
+    cfg = config_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
+    assert (cfg.image_width, cfg.image_height, cfg.max_cnt, cfg.min_dist, cfg.freq) == (752, 480, 150, 30, 10)
+    assert cfg.equalize and cfg.camera is not None
+
+    # TUM-VI: equidistant -> Kannala-Brandt; bad models are ConfigErrors naming the key
+    y = tmp_path / "sensor.yaml"
+    y.write_text("%YAML:1.0\nresolution: [512, 512]\nintrinsics: [190.9, 190.9, 254.9, 256.8]\n"
+                 "camera_model: pinhole\ndistortion_model: equidistant\n"
+                 "distortion_coefficients: [0.0034, 0.00071, -0.0021, 0.00020]\n")
+    kb = camera_from_sensor_yaml(y)
+    assert type(kb).__name__ == "KannalaBrandtCamera" and float(kb.params_dict()["k2"]) == 0.0034
+    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3]\n")
+    with pytest.raises(ConfigError, match="intrinsics"):
+        camera_from_sensor_yaml(y)
+    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3, 4]\ndistortion_model: weird\n"
+                 "distortion_coefficients: [0, 0, 0, 0]\n")
+    with pytest.raises(ConfigError, match="distortion_model"):
+        camera_from_sensor_yaml(y)
+
+
+def test_euroc_errors(tmp_path):
+    with pytest.raises(DataError, match="folder not found"):
+        EurocSequence(tmp_path / "nope")
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(DataError, match="not an EuRoC/ASL folder"):
+        EurocSequence(tmp_path / "plain")
+    root = make_asl(tmp_path / "empty", frames=[])
+    with pytest.raises(DataError, match="empty sequence"):
+        EurocSequence(root)
+    root = make_asl(tmp_path / "bad", n=2)
+    csv = root / "mav0" / "cam0" / "data.csv"
+    csv.write_text(csv.read_text() + "12x4,foo.png\n")
+    with pytest.raises(DataError, match=r"data\.csv:4: timestamp is not an integer"):
+        EurocSequence(root)
+
+
+def test_euroc_skip_bad_frames(tmp_path):
+    root = make_asl(tmp_path / "seq", n=4)
+    bad = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))[1]
+    truncate(bad)
+    with pytest.raises(DataError, match=bad.name):
+        list(EurocSequence(root))
+    seq = EurocSequence(root, skip_bad=True)
+    frames = list(seq)
+    assert [f.index for f in frames] == [0, 2, 3]
+    assert len(seq.skipped) == 1 and bad.name in seq.skipped[0][0] and "truncated" in seq.skipped[0][1]
+
+
+# ----------------------------------------------------------------------------------------------
+# image folders
+
+
+def test_image_folder_timestamps(tmp_path):
+    src = sample_frames("cam0")[:3]
+    ns = tmp_path / "ns"
+    ns.mkdir()
+    for f in reversed(src):
+        shutil.copy(f, ns / f.name)
+    seq = ImageFolderSequence(ns)
+    assert [f.stamp_ns for f in seq] == [int(f.stem) for f in src]
+
+    secs = tmp_path / "secs"
+    secs.mkdir()
+    for name in ("10.5.png", "9.25.png", "11.0.png"):
+        shutil.copy(src[0], secs / name)
+    assert [f.stamp_ns for f in ImageFolderSequence(secs)] == [9_250_000_000, 10_500_000_000, 11_000_000_000]
+
+    num = tmp_path / "num"
+    num.mkdir()
+    for i, f in enumerate(src):
+        shutil.copy(f, num / f"{i:06d}.png")
+    (num / "notes.txt").write_text("ignored")
+    with pytest.raises(DataError, match="give --fps"):
+        ImageFolderSequence(num)
+    seq = ImageFolderSequence(num, fps=20)
+    frames = list(seq)
+    assert [f.stamp_ns for f in frames] == [0, 50_000_000, 100_000_000]
+    np.testing.assert_array_equal(frames[2].image, load_gray(src[2]))
+
+
+def test_image_folder_errors(tmp_path):
+    with pytest.raises(DataError, match="folder not found"):
+        ImageFolderSequence(tmp_path / "nope")
+    (tmp_path / "e").mkdir()
+    with pytest.raises(DataError, match="empty sequence"):
+        ImageFolderSequence(tmp_path / "e")
+    (tmp_path / "f.png").write_bytes(b"")
+    with pytest.raises(DataError, match="not a folder"):
+        ImageFolderSequence(tmp_path / "f.png")
+
+
+# ----------------------------------------------------------------------------------------------
+# ROS bags
+
+
+@pytest.mark.parametrize("version", [1, 2], ids=["ros1", "ros2"])
+@pytest.mark.parametrize("kind", ["mono8", "bgr8", "rgb8", "compressed"])
+def test_rosbag_reader(tmp_path, version, kind):
+    frames = small_frames(3)
+    path = tmp_path / ("b.bag" if version == 1 else "b2")
+    write_bag(path, frames, version=version, encoding="mono8" if kind == "compressed" else kind,
+              compressed=kind == "compressed")
+    assert list_image_topics(path) == [TOPIC]
+    seq = RosbagSequence(path, TOPIC)
+    assert len(seq) == 3
+    got = list(seq)
+    assert [f.stamp_ns for f in got] == [s for s, _ in frames]  # header stamps, not bag times
+    for f, (_, img) in zip(got, frames):
+        assert f.image.dtype == np.uint8
+        np.testing.assert_array_equal(f.image, img)
+
+
+def test_rosbag_errors(tmp_path):
+    path = write_bag(tmp_path / "b.bag", small_frames(2))
+    with pytest.raises(DataError, match=r"no topic '/cam1/image_raw' \(image topics in the bag: /cam0/image_raw\)"):
+        RosbagSequence(path, "/cam1/image_raw")
+    with pytest.raises(DataError, match="has type std_msgs/msg/String"):
+        RosbagSequence(path, "/imu0")
+    with pytest.raises(DataError, match="bag not found"):
+        RosbagSequence(tmp_path / "missing.bag", TOPIC)
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"definitely not a bag")
+    with pytest.raises(DataError, match="cannot open ROS bag"):
+        RosbagSequence(junk, TOPIC)
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(DataError, match="no metadata.yaml"):
+        RosbagSequence(tmp_path / "dir", TOPIC)
+    with pytest.raises(DataError, match="no image topic given"):
+        open_sequence("bag", path, topic="")
+
+
+# ----------------------------------------------------------------------------------------------
+# MultiStream
+
+
+def test_multistream_streams_end_independently(tmp_path):
+    a = make_asl(tmp_path / "a", n=5)
+    b = make_asl(tmp_path / "b", n=2)
+    ms = MultiStream([EurocSequence(a), EurocSequence(b)], size=(480, 752))
+    assert len(ms) == 5 and ms.num_streams == 2
+    batches = list(ms)
+    assert len(batches) == 5
+    alive = torch.stack([x.alive for x in batches])
+    assert alive[:, 0].all() and alive[:2, 1].all() and not alive[2:, 1].any()
+    for x in batches:
+        assert x.images.shape == (2, 1, 480, 752) and x.images.dtype == torch.uint8
+        assert x.timestamps.dtype == torch.float64
+        np.testing.assert_allclose(x.timestamps.numpy(), ns_to_seconds(x.stamps_ns), rtol=0, atol=0)
+    # dead stream: its last image and last timestamp again
+    assert batches[4].stamps_ns[1] == batches[1].stamps_ns[1]
+    assert torch.equal(batches[4].images[1], batches[1].images[1])
+    assert batches[4].stamps_ns[0] == int(sample_frames("cam0")[4].stem)
+    assert len(list(MultiStream([EurocSequence(a)], max_steps=3))) == 3
+
+
+def test_shared_euroc_excerpt_cam0_and_cam1():
+    """The larger real excerpt: cam0 (95 frames) and cam1 (30) as two streams; cam1 ends first."""
+    root = shared_data_or_skip("sequences", "euroc_v1_01_easy_micro")
+    cam0, cam1 = EurocSequence(root, "cam0"), EurocSequence(root, "cam1")
+    assert (len(cam0), len(cam1)) == (95, 30)
+    ms = MultiStream([cam0, cam1], size=(480, 752), max_steps=32)
+    alive = [bool(b.alive[1]) for b in ms]
+    assert len(alive) == 32 and all(alive[:30]) and not any(alive[30:])
+    cam = camera_from_sensor_yaml(cam1.sensor_yaml)
+    assert (cam.width, cam.height) == (752, 480) and float(cam.params_dict()["fx"]) != 458.654
+
+
+def test_multistream_errors(tmp_path):
+    a = make_asl(tmp_path / "a", n=2)
+    with pytest.raises(DataError, match=r"image size 752x480 differs from the expected 640x480"):
+        list(MultiStream([EurocSequence(a)], size=(480, 640)))
+    for p in (a / "mav0" / "cam0" / "data").glob("*.png"):
+        truncate(p)
+    with pytest.raises(DataError, match="no readable frame"):
+        list(MultiStream([EurocSequence(a, skip_bad=True)]))
+    with pytest.raises(DataError, match="no input sequence"):
+        MultiStream([])
+
+
+def test_ns_to_seconds_is_accurate():
+    s = np.array([1403715273262142976, 5], dtype=np.int64)
+    t = ns_to_seconds(s)
+    assert abs(t[0] - 1403715273.262142976) < 3e-7 and t[1] == 5e-9
+
+
+# ----------------------------------------------------------------------------------------------
+# outputs: atomic writes
+
+
+def test_atomic_writes_leave_no_partial_file(tmp_path):
+    from torch_frontend.outputs import RunRecorder, atomic_path, write_text_atomic
+
+    p = tmp_path / "summary.json"
+    write_text_atomic(p, json.dumps({"a": 1}))
+    with pytest.raises(RuntimeError):
+        with atomic_path(p) as tmp:
+            tmp.write_text('{"a": 2, "half')
+            raise RuntimeError("interrupted")
+    assert json.loads(p.read_text()) == {"a": 1}  # old content intact
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["summary.json"]  # no temporary left
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        with RunRecorder(out, ["s0"], write_tracks=True):
+            raise KeyboardInterrupt
+    assert list(out.iterdir()) == []
+
+
+def test_replace_dir_swaps_folders(tmp_path):
+    from torch_frontend.outputs import replace_dir
+
+    final = tmp_path / "tracks"
+    final.mkdir()
+    (final / "old.png").write_bytes(b"old")
+    new = tmp_path / ".tracks.tmp"
+    (new / "stream0").mkdir(parents=True)
+    (new / "stream0" / "1.png").write_bytes(b"new")
+    replace_dir(new, final)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tracks"]
+    assert [p.name for p in final.iterdir()] == ["stream0"] and (final / "stream0" / "1.png").read_bytes() == b"new"

@@ -1,0 +1,350 @@
+"""The ``torch-frontend`` command line: ``track`` and ``demo``.
+
+``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR)... --out DIR`` runs the
+VINS front end on one or more sequences at once (B streams in one batched tracker) and writes
+``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
+(see ``torch_frontend.outputs``). ``torch-frontend demo`` does the same on the sample EuRoC frames
+shipped with the package.
+
+User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
+wrong size, an empty sequence) print one line ``torch-frontend: error: ...`` on stderr and exit
+with a non-zero code: 2 for usage and config errors, 1 for data errors, 130 when interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Sequence, Tuple
+
+from .errors import ConfigError
+from .io.frames import DataError
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+SAMPLE_DIR = PACKAGE_DIR / "data" / "euroc_mini"
+
+EXIT_DATA = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def default_config_path() -> Path:
+    """The EuRoC config: ``configs/euroc.yaml`` of a source checkout, else the packaged copy."""
+    for p in (PACKAGE_DIR.parent / "configs" / "euroc.yaml", PACKAGE_DIR / "data" / "configs" / "euroc.yaml"):
+        if p.is_file():
+            return p
+    raise ConfigError("cannot find configs/euroc.yaml (looked beside the package)")
+
+
+class _UsageError(Exception):
+    """Bad command-line combination (printed as one line, exit 2)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# the run
+
+
+def _resolve_device(device: str):
+    import torch
+
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise _UsageError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
+    try:
+        return torch.device(device)
+    except RuntimeError:
+        raise _UsageError(f"--device: expected cpu or cuda, got {device!r}") from None
+
+
+def resolve_config(config: Path | None, sources: Sequence[Tuple[str, str]], camera: str = "cam0"):
+    """The ``TrackerConfig`` of a run: ``config`` if given, else the ``sensor.yaml`` of the first
+    ``--euroc`` input (VINS's EuRoC front-end settings)."""
+    from .config import load_config
+
+    if config is not None:
+        cfg = load_config(config)
+    else:
+        euroc = [p for k, p in sources if k == "euroc"]
+        if not euroc:
+            raise _UsageError("no CONFIG given: a VINS config file is needed unless an --euroc folder "
+                              "provides sensor.yaml")
+        from .io.euroc import euroc_config
+
+        cfg = euroc_config(euroc[0], camera)
+    if cfg.camera is None:
+        raise ConfigError("has no camera (an estimator-only config?); the tracker needs one", cfg.path)
+    return cfg
+
+
+def run_track(
+    config,
+    sources: Sequence[Tuple[str, str]],
+    out,
+    *,
+    device: str = "cpu",
+    mode: str = "mono",
+    max_frames: int | None = None,
+    fps: float | None = None,
+    topic: str | None = None,
+    camera: str = "cam0",
+    skip_bad_frames: bool = False,
+    write_tracks: bool = True,
+    progress: bool | None = None,
+) -> Dict[str, Any]:
+    """Track ``sources`` (``[(kind, path)]``, kind in ``euroc``, ``bag``, ``images``) as B streams
+    and write the outputs into ``out``. Returns the summary dict (also in ``summary.json``).
+
+    Args:
+        config: a ``TrackerConfig``, a config path, or None (``sensor.yaml`` of the first --euroc).
+        max_frames: at most this many steps (frames per stream).
+        progress: tqdm bar on stderr (None: only on a terminal).
+
+    Raises:
+        DataError, ConfigError: user errors; ``KeyboardInterrupt`` passes through after cleanup.
+    """
+    import torch
+
+    from .config import TrackerConfig
+    from .io import MultiStream, open_sequence
+    from .outputs import RunRecorder
+
+    if not sources:
+        raise _UsageError("no input: give at least one --euroc DIR, --bag PATH or --images DIR")
+    if max_frames is not None and max_frames < 1:
+        raise _UsageError(f"--max-frames must be >= 1, got {max_frames}")
+    if mode not in ("mono", "fusion"):
+        raise _UsageError(f"--mode: expected mono or fusion, got {mode!r}")
+    dev = _resolve_device(device)
+    cfg = config if isinstance(config, TrackerConfig) else resolve_config(
+        None if config is None else Path(config), sources, camera)
+    seqs = [
+        open_sequence(kind, path, camera=camera, fps=fps, topic=topic or cfg.image_topic or None,
+                      skip_bad=skip_bad_frames)
+        for kind, path in sources
+    ]
+    stream = MultiStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=max_frames)
+
+    from .tracker import FeatureTracker
+
+    tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=mode)
+    names = [f"{s.kind}:{s.name}" for s in seqs]
+    total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in seqs)
+    bar = None
+    if progress is not False:
+        from tqdm import tqdm
+
+        # a pty that reports a 0 x 0 size makes tqdm hide the bar: fall back to 100 x 20
+        size = shutil.get_terminal_size((100, 20))
+        bar = tqdm(total=total, unit="frame", desc="tracking", disable=None if progress is None else False,
+                   file=sys.stderr, ncols=min(120, size.columns), nrows=size.lines, leave=False)
+    steps = 0
+    tracker_seconds = 0.0
+    with RunRecorder(out, names, write_tracks=write_tracks) as rec:
+        t0 = time.perf_counter()
+        try:
+            for batch in stream:
+                t1 = time.perf_counter()
+                frame = tracker.track(batch.images.to(dev), batch.timestamps)
+                if dev.type == "cuda":
+                    torch.cuda.synchronize(dev)
+                tracker_seconds += time.perf_counter() - t1
+                rec.add(batch, frame)
+                steps += 1
+                if bar is not None:
+                    bar.update(int(batch.alive.sum()))
+        finally:
+            if bar is not None:
+                bar.close()
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        seconds = time.perf_counter() - t0
+        summary = rec.summary(
+            seconds,
+            stream.skipped,
+            extra={
+                "steps": steps,
+                "tracker_seconds": round(tracker_seconds, 6),
+                "config": str(cfg.path),
+                "mode": mode,
+                "device": str(dev),
+                "inputs": [{"kind": k, "path": str(p), "frames_listed": len(s)} for (k, p), s in zip(sources, seqs)],
+                "out": str(Path(out)),
+            },
+        )
+        rec.write(summary)
+    return summary
+
+
+def format_summary(s: Dict[str, Any]) -> str:
+    """The few lines ``track``/``demo`` print."""
+    lines = [
+        f"streams       {s['streams']}   frames {s['frames']}   steps {s.get('steps', '?')}   "
+        f"published frames {s['published']}",
+        f"features      {s['published_features']} published, {s['mean_features']:.1f} per published frame",
+        f"tracks        {s['tracks']}   mean length {s['mean_track_length']:.2f}   "
+        f"median {s['median_track_length']:g} frames",
+        f"speed         {s['frames_per_second']:.1f} frames/s ({s['seconds']:.2f} s on {s.get('device', '?')}, "
+        f"mode {s.get('mode', '?')})",
+        f"skipped       {s['skipped_bad_frames']} bad frames",
+    ]
+    for k in s.get("skipped", [])[:5]:
+        lines.append(f"              stream {k['stream']}: {k['reason']}")
+    if "out" in s:
+        lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
+                     f"features_per_frame.png, track_length_hist.png, tracks/)")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------------
+# commands
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    summary = run_track(
+        args.config, args.sources or [], args.out, device=args.device, mode=args.mode,
+        max_frames=args.max_frames, fps=args.fps, topic=args.topic, camera=args.camera,
+        skip_bad_frames=args.skip_bad_frames, write_tracks=not args.no_tracks,
+        progress=False if args.no_progress else None,
+    )
+    print(format_summary(summary))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .config import load_config
+
+    cfg = load_config(args.config or default_config_path())
+    print(cfg.summary())
+    print(f"\nsample        {SAMPLE_DIR} (cam0)")
+    summary = run_track(
+        cfg, [("euroc", str(SAMPLE_DIR))], args.out, device=args.device, mode=args.mode,
+        max_frames=args.max_frames, write_tracks=not args.no_tracks,
+        progress=False if args.no_progress else None,
+    )
+    print(format_summary(summary))
+    return 0
+
+
+class _SourceAction(argparse.Action):
+    """``--euroc/--bag/--images``: appended, in command-line order, as ``(kind, path)``."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        items = list(getattr(namespace, self.dest, None) or [])
+        items.append((self.const, values))
+        setattr(namespace, self.dest, items)
+
+
+def _positive_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {s}")
+    return v
+
+
+def _positive_int(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {s}")
+    return v
+
+
+def _add_run_options(p: argparse.ArgumentParser, out_default: str | None) -> None:
+    p.add_argument("--out", type=Path, default=None if out_default is None else Path(out_default),
+                   required=out_default is None, metavar="DIR",
+                   help="output folder" + ("" if out_default is None else f" (default: {out_default})"))
+    p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    p.add_argument("--mode", choices=("mono", "fusion"), default="mono",
+                   help="VINS-Mono feature_tracker or VINS-Fusion tracker rules (default: mono)")
+    p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
+                   help="stop after N frames per stream")
+    p.add_argument("--no-tracks", action="store_true", help="do not draw track images (tracks/)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="torch-frontend",
+        description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    track = sub.add_parser(
+        "track",
+        help="track one or more sequences (EuRoC/TUM-VI folders, ROS bags, image folders) and write results",
+        description="Track one or more sequences as B streams of one batched tracker and write "
+                    "features.csv, features.npz, summary.json, features_per_frame.png, "
+                    "track_length_hist.png and tracks/ into --out. Inputs may be repeated and mixed; "
+                    "each is one stream with its own timestamps.",
+        epilog="example: torch-frontend track configs/euroc.yaml --euroc MH_01_easy --euroc MH_02_easy "
+               "--out out/mh --max-frames 200",
+    )
+    track.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
+                       help="VINS config YAML (VINS-Mono or VINS-Fusion); optional with --euroc, whose "
+                            "sensor.yaml then gives the camera")
+    src = track.add_argument_group("inputs (repeatable, at least one)")
+    src.add_argument("--euroc", dest="sources", action=_SourceAction, const="euroc", metavar="DIR",
+                     help="EuRoC / TUM-VI ASL folder (mav0/cam0/data.csv + data/*.png)")
+    src.add_argument("--bag", dest="sources", action=_SourceAction, const="bag", metavar="PATH",
+                     help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
+    src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
+                     help="folder of images (timestamps from numeric names, or --fps)")
+    track.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                       help="frame rate of --images folders (timestamps i/F)")
+    track.add_argument("--topic", default=None, metavar="T",
+                       help="image topic of --bag inputs (default: the config's image_topic)")
+    track.add_argument("--camera", default="cam0", metavar="CAM",
+                       help="camera folder of --euroc inputs (default: cam0)")
+    track.add_argument("--skip-bad-frames", action="store_true",
+                       help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
+    _add_run_options(track, None)
+    track.set_defaults(func=_cmd_track)
+
+    demo = sub.add_parser(
+        "demo",
+        help="run on the sample data shipped with the package and print a summary",
+        description="Track the 24 sample EuRoC cam0 frames shipped with the package "
+                    f"({SAMPLE_DIR}) with configs/euroc.yaml and write the outputs into --out.",
+    )
+    demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
+    _add_run_options(demo, "out/demo")
+    demo.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def _error(msg: str) -> None:
+    print(f"torch-frontend: error: {' '.join(str(msg).split())}", file=sys.stderr)
+
+
+def main(argv: List[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return int(args.func(args) or 0)
+    except (ConfigError, _UsageError) as exc:
+        _error(str(exc))
+        return EXIT_USAGE
+    except DataError as exc:
+        _error(str(exc))
+        return EXIT_DATA
+    except KeyboardInterrupt:
+        _error("interrupted (no partial file left in the output folder)")
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # e.g. --out is a file, a read-only folder, a full disk
+        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+        _error(f"cannot write{where}: {exc.strerror or exc}")
+        return EXIT_DATA
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,146 @@
+"""``MultiStream``: B sequences read in lock step, one batch per tracker call.
+
+Convention:
+    Step ``k`` takes the next readable frame of every stream; each stream keeps its own
+    timestamps (they need not agree across streams). A stream that has ended (or, with
+    ``skip_bad``, has no readable frame left) is *dead*: it is fed its last image and its last
+    timestamp again and ``alive[b]`` is False. Callers ignore a dead stream's tracker output.
+
+    Why "last image, last timestamp": ``FeatureTracker`` has no per-stream skip flag, and the
+    batch must keep B images. Repeating the last frame keeps the dead stream's inputs valid (same
+    size, finite, non-decreasing time: no restart), costs one stream's worth of work, and its
+    outputs are discarded. A tracker-side ``active (B,)`` argument would remove that work (see the
+    report of issue 8).
+
+    Iteration stops when every stream has ended, or after ``max_steps`` steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterator, List, Tuple
+from typing import Sequence as Seq
+
+import numpy as np
+import torch
+
+from .frames import DataError, Frame, Sequence
+
+
+@dataclasses.dataclass
+class Batch:
+    """One step of B streams.
+
+    Attributes:
+        step: 0-based step number.
+        images: ``(B, 1, H, W)`` uint8 tensor (dead streams: their last image).
+        timestamps: ``(B,)`` float64 seconds (dead streams: their last timestamp).
+        stamps_ns: ``(B,)`` int64 numpy, exact nanoseconds.
+        alive: ``(B,)`` bool tensor: the stream delivered a new frame this step.
+        sources: per stream, the file / message of the frame.
+        raw: per stream, the ``(H, W)`` uint8 numpy image (for drawing).
+    """
+
+    step: int
+    images: torch.Tensor
+    timestamps: torch.Tensor
+    stamps_ns: np.ndarray
+    alive: torch.Tensor
+    sources: List[str]
+    raw: List[np.ndarray]
+
+
+def ns_to_seconds(stamps_ns: np.ndarray) -> np.ndarray:
+    """Integer ns → float64 s, splitting whole seconds first (a plain ``ns * 1e-9`` rounds the
+    19-digit integer to float64 before scaling)."""
+    s = np.asarray(stamps_ns, dtype=np.int64)
+    return (s // 1_000_000_000).astype(np.float64) + (s % 1_000_000_000).astype(np.float64) * 1e-9
+
+
+class MultiStream:
+    """Iterate B ``Sequence`` objects together.
+
+    Args:
+        sequences: the B sequences.
+        size: expected ``(H, W)`` of every image (the config's ``image_height, image_width``);
+            a frame of another size raises ``DataError`` naming it. ``None``: the first frame's.
+        max_steps: stop after this many steps (``None``: until every stream has ended).
+
+    Raises (while iterating):
+        DataError: a bad frame (without ``skip_bad``), a size mismatch, or a stream with no
+            readable frame at all.
+    """
+
+    def __init__(self, sequences: Seq[Sequence], size: Tuple[int, int] | None = None,
+                 max_steps: int | None = None):
+        if len(sequences) == 0:
+            raise DataError("no input sequence given")
+        self.sequences = list(sequences)
+        self.size = None if size is None else (int(size[0]), int(size[1]))
+        self.max_steps = None if max_steps is None else int(max_steps)
+
+    @property
+    def num_streams(self) -> int:
+        return len(self.sequences)
+
+    def __len__(self) -> int:
+        """Upper bound of the number of steps (skipped frames make it shorter)."""
+        n = max(len(s) for s in self.sequences)
+        return n if self.max_steps is None else min(n, self.max_steps)
+
+    @property
+    def skipped(self) -> List[Tuple[int, str, str]]:
+        """``(stream, source, reason)`` of every frame skipped so far."""
+        return [(b, src, why) for b, s in enumerate(self.sequences) for src, why in s.skipped]
+
+    def _check(self, frame: Frame) -> None:
+        h, w = frame.image.shape
+        if self.size is None:
+            self.size = (h, w)
+        elif (h, w) != self.size:
+            raise DataError(
+                f"{frame.source}: image size {w}x{h} differs from the expected {self.size[1]}x{self.size[0]} "
+                f"(the config's image_width x image_height)"
+            )
+
+    def __iter__(self) -> Iterator[Batch]:
+        B = len(self.sequences)
+        iters = [iter(s) for s in self.sequences]
+        last: List[Frame | None] = [None] * B
+        ended = [False] * B
+        step = 0
+        while self.max_steps is None or step < self.max_steps:
+            alive = [False] * B
+            for b in range(B):
+                if ended[b]:
+                    continue
+                fr = next(iters[b], None)
+                if fr is None:
+                    ended[b] = True
+                    if last[b] is None:
+                        s = self.sequences[b]
+                        raise DataError(f"{s.name}: no readable frame in the sequence ({len(s)} listed, "
+                                        f"{len(s.skipped)} skipped as bad)")
+                    continue
+                self._check(fr)
+                last[b] = fr
+                alive[b] = True
+            if not any(alive):
+                return
+            frames = [f for f in last]  # every entry is set: a stream that never had a frame raised above
+            raw = [f.image for f in frames]
+            images = torch.from_numpy(np.stack(raw)[:, None])
+            stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
+            yield Batch(
+                step=step,
+                images=images,
+                timestamps=torch.from_numpy(ns_to_seconds(stamps)),
+                stamps_ns=stamps,
+                alive=torch.tensor(alive),
+                sources=[f.source for f in frames],
+                raw=raw,
+            )
+            step += 1
+
+
+__all__ = ["MultiStream", "Batch", "ns_to_seconds"]

@@ -1,0 +1,181 @@
+"""Detection masks: VINS ``setMask`` (minimum spacing of tracked features) and the fisheye mask.
+
+``distance_mask`` is VINS-Mono's ``setMask`` (spec §3.7) in tensor form: points are visited by
+descending priority (the track count; ties by index, i.e. a stable sort - VINS' ``std::sort`` is
+not stable, spec §3.7.2), a point is kept iff the mask at its rounded pixel is exactly 255, and
+every kept point blanks a filled disc of ``radius`` around its rounded centre. The result is the
+sequential result exactly, computed in parallel rounds (see ``corners._resolve_rounds``).
+
+The disc is ``dx² + dy² <= radius²`` around the ``cvRound``-ed centre, which equals
+``cv2.circle(mask, centre, radius, 0, -1)`` pixel for pixel for integer radii (checked for radii
+1..60 in ``tests/test_masks.py``).
+
+``fisheye_mask`` is an analytic, binarised replacement for VINS' ``fisheye_mask.jpg`` (spec §3.13).
+"""
+
+from __future__ import annotations
+
+from typing import Tuple, Union
+
+import torch
+
+from ._checks import check_points, check_shape, default_valid
+from .corners import _resolve_rounds
+from .errors import ConfigError
+
+__all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
+
+# fitted to VINS-Mono config/fisheye_mask.jpg (512x512): the ==255 region is best matched by a
+# disc of radius 271 centred at (255.5, 255.5) (99.1 % of pixels agree; the rest is the JPEG's
+# ring of 1..254 values and clipping by the image border).
+_FISHEYE_RADIUS_512 = 271.0
+
+
+def disc_offsets(radius: float, device=None) -> torch.Tensor:
+    """Integer offsets ``(dx, dy)`` with ``dx² + dy² <= radius²``: ``(P, 2)`` long.
+
+    This is OpenCV's filled ``circle`` of an integer radius around an integer centre.
+    """
+    r = int(radius)
+    if radius < 0:
+        raise ConfigError(f"radius must be >= 0, got {radius}")
+    ax = torch.arange(-r - 1, r + 2, device=device)
+    dy, dx = torch.meshgrid(ax, ax, indexing="ij")
+    inside = (dx * dx + dy * dy).double() <= float(radius) ** 2
+    return torch.stack([dx[inside], dy[inside]], -1)
+
+
+def _base_mask_batch(base_mask: torch.Tensor | None, B: int, height: int | None, width: int | None,
+                     device) -> torch.Tensor:
+    if base_mask is None:
+        if height is None or width is None:
+            raise ValueError("distance_mask: give base_mask or both height and width")
+        return torch.full((B, int(height), int(width)), 255, dtype=torch.uint8, device=device)
+    m = base_mask
+    if m.dim() == 2:
+        m = m.unsqueeze(0).expand(B, -1, -1)
+    elif m.dim() == 4 and m.shape[1] == 1:
+        m = m[:, 0]
+    if m.dim() != 3 or m.shape[0] != B:
+        raise ValueError(f"base_mask: expected shape (H, W), (B, H, W) or (B, 1, H, W) with B={B}, "
+                         f"got {tuple(base_mask.shape)}")
+    if height is not None and width is not None and tuple(m.shape[-2:]) != (int(height), int(width)):
+        raise ValueError(f"base_mask: expected (H, W) = {(int(height), int(width))}, got {tuple(m.shape[-2:])}")
+    if m.is_floating_point():
+        m = m.round().clamp(0, 255)
+    return m.to(device=device, dtype=torch.uint8).clone()
+
+
+def distance_mask(
+    pts: torch.Tensor,
+    priority: torch.Tensor,
+    valid: torch.Tensor | None,
+    radius: Union[int, float],
+    base_mask: torch.Tensor | None = None,
+    height: int | None = None,
+    width: int | None = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """VINS ``setMask``: keep well-spaced points (older tracks first) and build the detection mask.
+
+    Convention:
+        Points are visited by descending ``priority`` (ties: lower index first). A valid point is
+        kept iff ``mask[cvRound(y), cvRound(x)] == 255`` (exactly 255; points rounding outside
+        the image are dropped); each kept point sets the filled disc ``dx² + dy² <= radius²``
+        around its rounded centre to 0. ``cvRound`` = ``torch.round`` (half to even).
+        Pixel centres at integer coordinates.
+
+    Args:
+        pts: ``(B, N, 2)`` float, pixels ``(x, y)``.
+        priority: ``(B, N)`` (track counts), larger first.
+        valid: ``(B, N)`` bool or None (all valid).
+        radius: disc radius in pixels (``MIN_DIST``).
+        base_mask: optional ``(H, W)``, ``(B, H, W)`` or ``(B, 1, H, W)`` uint8 (e.g. the fisheye
+            mask); default all 255 of size ``height`` x ``width``.
+
+    Returns:
+        keep: ``(B, N)`` bool, in the input order (VINS also reorders by priority; use
+        ``torch.sort(priority, descending=True, stable=True)`` for that order).
+        mask: ``(B, H, W)`` uint8, ``base_mask`` with the kept points' discs set to 0 - the mask
+        to pass to ``good_features_to_track``.
+    """
+    check_points(pts, "pts")
+    B, N, _ = pts.shape
+    check_shape(priority, (B, N), "priority")
+    valid = default_valid(pts, valid, "valid")
+    if radius < 0:
+        raise ConfigError(f"radius must be >= 0, got {radius}")
+    mask = _base_mask_batch(base_mask, B, height, width, pts.device)
+    H, W = mask.shape[-2:]
+    dev = pts.device
+    if N == 0:
+        return torch.zeros(B, 0, dtype=torch.bool, device=dev), mask
+
+    # visiting order: priority descending, ties by index (stable); invalid points last
+    key = torch.where(valid, priority.to(torch.float64), torch.full_like(priority, float("-inf"), dtype=torch.float64))
+    order = torch.sort(key, dim=1, descending=True, stable=True).indices
+    p = torch.gather(pts.detach(), 1, order[..., None].expand(B, N, 2))
+    v = torch.gather(valid, 1, order)
+    finite = torch.isfinite(p).all(-1)
+    r = torch.where(finite[..., None], torch.round(p), torch.full_like(p, -1.0))
+    rx = r[..., 0].clamp(-1, W).long()
+    ry = r[..., 1].clamp(-1, H).long()
+    inside = v & finite & (rx >= 0) & (rx < W) & (ry >= 0) & (ry < H)
+    flat = ry.clamp(0, H - 1) * W + rx.clamp(0, W - 1)
+    base_ok = torch.gather(mask.reshape(B, -1), 1, flat) == 255
+    eligible = inside & base_ok
+
+    # conflict: j ranked above i and j's disc covers i's rounded pixel
+    dx = rx[:, :, None] - rx[:, None, :]
+    dy = ry[:, :, None] - ry[:, None, :]
+    cover = (dx * dx + dy * dy).double() <= float(radius) ** 2
+    higher = torch.ones(N, N, dtype=torch.bool, device=dev).tril(-1)
+    conf = cover & higher & eligible[:, None, :]
+    keep_sorted = _resolve_rounds(conf.to(torch.float32), eligible)
+
+    # back to input order
+    keep = torch.zeros_like(keep_sorted).scatter_(1, order, keep_sorted)
+
+    # rasterise discs of kept points: scatter 0 at centre + offsets (out-of-image -> dump slot)
+    off = disc_offsets(radius, dev)  # (P, 2)
+    px = rx[:, :, None] + off[None, None, :, 0]
+    py = ry[:, :, None] + off[None, None, :, 1]
+    ok = keep_sorted[:, :, None] & (px >= 0) & (px < W) & (py >= 0) & (py < H)
+    bidx = torch.arange(B, device=dev)[:, None, None]
+    idx = torch.where(ok, (bidx * H + py) * W + px, torch.full_like(px, B * H * W))
+    buf = torch.cat([mask.reshape(-1), mask.new_zeros(1)])
+    buf.index_fill_(0, idx.reshape(-1), 0)
+    mask = buf[:-1].view(B, H, W)
+    return keep, mask
+
+
+def fisheye_mask(
+    height: int,
+    width: int,
+    radius: float | None = None,
+    center: Tuple[float, float] | None = None,
+    device=None,
+) -> torch.Tensor:
+    """Binarised analytic fisheye mask: 255 inside the disc, 0 outside.
+
+    Convention:
+        Pixel ``(x, y)`` is 255 iff ``(x - cx)² + (y - cy)² <= radius²``. Defaults: centre
+        ``((W - 1) / 2, (H - 1) / 2)``; radius ``271 * min(H, W) / 512``, i.e. VINS-Mono's
+        ``config/fisheye_mask.jpg`` (512x512, used by the TUM config) scaled to the image:
+        for 512x512 the ``== 255`` pixels agree with the JPEG on 99.1 % of pixels (the rest is the
+        JPEG's soft edge ring). The unused ``fisheye_mask_752x480.jpg`` is reproduced with
+        ``radius=279.5`` (99.4 %).
+
+    Returns:
+        ``(H, W)`` uint8.
+    """
+    H, W = int(height), int(width)
+    if H < 1 or W < 1:
+        raise ConfigError(f"fisheye_mask: size must be positive, got {(H, W)}")
+    if radius is None:
+        radius = _FISHEYE_RADIUS_512 * min(H, W) / 512.0
+    if center is None:
+        center = ((W - 1) / 2.0, (H - 1) / 2.0)
+    ys = torch.arange(H, device=device, dtype=torch.float64)[:, None] - float(center[1])
+    xs = torch.arange(W, device=device, dtype=torch.float64)[None, :] - float(center[0])
+    inside = xs * xs + ys * ys <= float(radius) ** 2
+    return inside.to(torch.uint8) * 255

@@ -1,0 +1,197 @@
+"""Image pyramid (``cv2.pyrDown`` chain) and Scharr derivatives as used by ``calcOpticalFlowPyrLK``.
+
+Convention:
+    Images are ``(B, 1, H, W)`` (``(B, H, W)`` accepted), uint8 or float grey levels 0..255. Pixel
+    centres sit at integer coordinates. Level ``l`` of a pyramid has size
+    ``ceil(W_{l-1}/2) x ceil(H_{l-1}/2)``; a point ``p`` at level 0 is ``p / 2**l`` at level ``l``.
+
+OpenCV facts reproduced here (spec §5.1):
+
+* ``pyrDown``: 5x5 binomial ``[1 4 6 4 1]^T [1 4 6 4 1] / 256``, BORDER_REFLECT_101, output centred on
+  even source pixels, size ``ceil(W/2) x ceil(H/2)``. For 8-bit images OpenCV computes the integer
+  sum and rounds ``(sum + 128) >> 8`` (half up) at *every* level; ``build_pyramid`` does the same
+  for uint8 input (``round_levels``) so that an LK on top of it sees the very same grey levels.
+* Scharr derivatives (``calcSharrDeriv``): vertical ``[3 10 3]`` smoothing and horizontal
+  ``[-1 0 1]`` difference for ``Ix`` (transposed for ``Iy``), BORDER_REFLECT_101, *not* normalised
+  (a unit ramp gives 32) — the same values as ``cv2.Scharr(img, CV_16S, 1, 0)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from ._checks import as_float_image, as_image_batch
+from .errors import ConfigError
+
+__all__ = ["Pyramid", "build_pyramid", "pyr_down", "scharr_gradients", "pad_reflect101"]
+
+
+def _reflect101_index(n: int, before: int, after: int, device) -> torch.Tensor:
+    """Source indices of OpenCV's ``borderInterpolate(p, n, BORDER_REFLECT_101)`` for
+    ``p in [-before, n + after)`` (handles pads larger than the image by repeated reflection)."""
+    p = torch.arange(-before, n + after, device=device)
+    if n == 1:
+        return torch.zeros_like(p)
+    period = 2 * (n - 1)
+    p = p.abs() % period
+    return torch.where(p >= n, period - p, p)
+
+
+def pad_reflect101(x: torch.Tensor, pad_h: int, pad_w: int) -> torch.Tensor:
+    """Pad the last two dims by ``pad_h`` rows / ``pad_w`` columns on each side with
+    BORDER_REFLECT_101 (``dcb|abcdefgh|gfe``).
+
+    Implemented as an index gather (differentiable, any pad size, any image size >= 1) rather than
+    ``F.pad(mode="reflect")``, which refuses pads >= the image size.
+    """
+    H, W = x.shape[-2:]
+    if pad_h < H and pad_w < W and x.dim() == 4:
+        # torch's "reflect" is reflect-101; faster than the gather, but limited to pads < size
+        return F.pad(x, (pad_w, pad_w, pad_h, pad_h), mode="reflect")
+    iy = _reflect101_index(H, pad_h, pad_h, x.device)
+    ix = _reflect101_index(W, pad_w, pad_w, x.device)
+    return x.index_select(-2, iy).index_select(-1, ix)
+
+
+_BINOMIAL = (1.0, 4.0, 6.0, 4.0, 1.0)
+
+
+def _pyr_down_impl(img: torch.Tensor) -> torch.Tensor:
+    # Integer kernel, divided once at the end: on integer grey levels every partial sum is an exact
+    # small integer in float32, so the result is exactly ``sum / 256`` whatever the summation order.
+    k = torch.tensor(_BINOMIAL, dtype=img.dtype, device=img.device)
+    k2 = (k[:, None] * k[None, :]).view(1, 1, 5, 5)
+    padded = pad_reflect101(img, 2, 2)
+    return F.conv2d(padded, k2, stride=2) / 256.0
+
+
+def pyr_down(img: torch.Tensor) -> torch.Tensor:
+    """Gaussian pyramid down-sampling, as ``cv2.pyrDown`` (default size and border).
+
+    Args:
+        img: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float grey levels.
+
+    Returns:
+        ``(B, 1, ceil(H/2), ceil(W/2))`` float (float32 for uint8 input), *not* rounded:
+        ``floor(out + 0.5)`` equals ``cv2.pyrDown`` of a uint8 image exactly.
+
+    Convention:
+        ``out[y, x] = sum_{i,j} k[i] k[j] img[2y + i - 2, 2x + j - 2] / 256``, ``k = [1 4 6 4 1]``,
+        out-of-image indices reflected with BORDER_REFLECT_101.
+    """
+    return _pyr_down_impl(as_float_image(img, "img"))
+
+
+def _scharr_impl(img: torch.Tensor) -> torch.Tensor:
+    # separable, on shifted slices of the padded image (about 2x faster than a 1-channel conv2d):
+    # Ix = [-1 0 1] along x of the [3 10 3] smoothing along y; Iy the transpose
+    H, W = img.shape[-2:]
+    P = pad_reflect101(img, 1, 1)
+    up, mid, down = P[..., 0:H, :], P[..., 1:H + 1, :], P[..., 2:H + 2, :]
+    s = (up + down) * 3.0 + mid * 10.0
+    d = down - up
+    ix = s[..., 2:] - s[..., :-2]
+    iy = (d[..., :-2] + d[..., 2:]) * 3.0 + d[..., 1:-1] * 10.0
+    return torch.cat([ix, iy], dim=1)
+
+
+def scharr_gradients(img: torch.Tensor) -> torch.Tensor:
+    """3x3 Scharr derivatives ``(Ix, Iy)`` as OpenCV's LK (``calcSharrDeriv``) computes them.
+
+    Args:
+        img: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float grey levels.
+
+    Returns:
+        ``(B, 2, H, W)`` float: channel 0 ``Ix``, channel 1 ``Iy``; un-normalised (a ramp of slope 1
+        grey level/px gives 32), equal to ``cv2.Scharr(img, cv2.CV_16S, 1, 0)`` / ``(…, 0, 1)``.
+
+    Convention:
+        BORDER_REFLECT_101 at the image edge (same as ``cv2.Scharr``'s default and ``calcSharrDeriv``).
+    """
+    return _scharr_impl(as_float_image(img, "img"))
+
+
+@dataclass
+class Pyramid:
+    """An image pyramid kept between frames (the tracker keeps the last one).
+
+    Attributes:
+        levels: ``L + 1`` tensors ``(B, 1, H_l, W_l)`` float grey levels, level 0 = the image.
+        grads: ``None`` or ``L + 1`` tensors ``(B, 2, H_l, W_l)`` Scharr ``(Ix, Iy)`` of each level
+            (needed when the pyramid is the *previous* image of an LK call).
+        rounded: levels hold OpenCV's 8-bit values (built from uint8 with per-level rounding); LK
+            then defaults to its fixed-point emulation.
+    """
+
+    levels: List[torch.Tensor]
+    grads: List[torch.Tensor] | None = None
+    rounded: bool = False
+
+    @property
+    def max_level(self) -> int:
+        return len(self.levels) - 1
+
+    @property
+    def batch(self) -> int:
+        return self.levels[0].shape[0]
+
+    def sizes(self) -> List[Tuple[int, int]]:
+        """``(H_l, W_l)`` per level."""
+        return [tuple(t.shape[-2:]) for t in self.levels]
+
+    def with_gradients(self) -> Pyramid:
+        """This pyramid with ``grads`` filled in: computed once if missing and cached on the object
+        (a pyramid used as ``next`` of one LK call is the ``prev`` of the following one)."""
+        if self.grads is None or len(self.grads) != len(self.levels):
+            self.grads = [_scharr_impl(t) for t in self.levels]
+        return self
+
+    def to(self, *args, **kwargs) -> Pyramid:
+        g = None if self.grads is None else [t.to(*args, **kwargs) for t in self.grads]
+        return Pyramid([t.to(*args, **kwargs) for t in self.levels], g, self.rounded)
+
+
+def build_pyramid(
+    img: torch.Tensor,
+    max_level: int = 3,
+    with_gradients: bool = True,
+    round_levels: bool | None = None,
+) -> Pyramid:
+    """Build levels ``0..max_level`` by repeated :func:`pyr_down` (``cv2.buildOpticalFlowPyramid``).
+
+    Args:
+        img: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float grey levels 0..255.
+        max_level: last level index (3 => 4 levels), >= 0.
+        with_gradients: also compute Scharr ``(Ix, Iy)`` per level (needed for the previous image).
+        round_levels: round every level to the nearest integer (half up) before down-sampling the
+            next one, exactly as OpenCV does for 8-bit images. Default: True for uint8 input, False
+            for float input (keeps the pyramid differentiable w.r.t. the image).
+
+    Returns:
+        :class:`Pyramid` with float levels (float32 for uint8 input, the input dtype otherwise).
+
+    Convention:
+        Unlike OpenCV the levels are stored without the ``win_size`` border; the LK pads them itself
+        (BORDER_REFLECT_101 for images, zeros for derivatives, as ``calcOpticalFlowPyrLK``). OpenCV
+        also stops building when a level would be <= ``win_size``; LK applies that cap for its own
+        ``win_size``, so here all requested levels are built.
+    """
+    if not isinstance(max_level, int) or max_level < 0:
+        raise ConfigError(f"max_level must be an int >= 0, got {max_level!r}")
+    raw = as_image_batch(img, "img")
+    if round_levels is None:
+        round_levels = raw.dtype == torch.uint8
+    level = as_float_image(raw, "img")
+    levels = [level]
+    for _ in range(max_level):
+        level = _pyr_down_impl(level)
+        if round_levels:
+            # OpenCV: (sum + 128) >> 8, i.e. round half up; values are exact multiples of 1/256.
+            level = torch.floor(level + 0.5)
+        levels.append(level)
+    grads = [_scharr_impl(t) for t in levels] if with_gradients else None
+    return Pyramid(levels, grads, bool(round_levels))

@@ -1,0 +1,699 @@
+"""Batched fundamental-matrix RANSAC (OpenCV ``findFundamentalMat(FM_RANSAC)`` semantics) and a
+differentiable weighted 8-point refit.
+
+VINS-Mono's ``rejectWithF`` (spec §3.8, §5.4) lifts every track into a 460-px virtual pinhole and
+calls ``cv2.findFundamentalMat(un_cur, un_forw, FM_RANSAC, F_threshold, 0.99)``. This module solves B
+such problems together: every round takes up to ``batch_hypotheses`` minimal samples per problem,
+solves them with a batched 7-point solver, scores every candidate on every point in parallel and
+then replays OpenCV's sequential bookkeeping on the round (first strictly better model, adaptive
+iteration bound after every sample, exact stopping sample), so the inlier masks are OpenCV's.
+
+Convention:
+    * ``p1, p2: (B, N, 2)`` float, pixels ``(x, y)`` of the virtual pinhole; ``valid: (B, N)`` bool.
+      Masked-out slots may hold anything (NaN included); valid slots with a non-finite coordinate are
+      treated as masked out (and reported as outliers).
+    * ``F: (B, 3, 3)`` maps image-1 points to image-2 epipolar lines: ``[p2, 1] F [p1, 1]^T = 0``
+      (OpenCV's convention). Returned F are scaled to unit Frobenius norm, with the entry of largest
+      magnitude positive (OpenCV instead scales to ``F[2, 2] = 1``, which is ill-conditioned for
+      rectified-stereo-like geometry where ``F[2, 2] ~ 0``).
+    * Inlier test (OpenCV ``FMEstimatorCallback::computeError``): ``max(d1^2, d2^2) <= threshold^2``
+      with ``dk`` the distance of the point in image k to its epipolar line (points are rounded to
+      float32 first, as OpenCV does; arithmetic in float64).
+
+Seeding rule (determinism; see :func:`find_fundamental`): problem b's minimal samples are exactly
+the ones OpenCV's ``getSubset`` draws with ``cv::RNG(seed_b)`` for its n_b valid points taken in slot
+order (``next() % n_b``, repeated indices redrawn). The default seed is OpenCV's own
+(``(uint64)-1``, re-seeded on every call), which is why the masks equal cv2's. The sample stream
+depends only on (seed_b, n_b): nothing depends on b, B, N, the padding layout, the round size or the
+other problems, so a problem gets the same result in any batch as in a single call with the same
+seed. The index tables are built on the host once per (seed, n) and cached.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import math
+from typing import NamedTuple, Sequence, Union
+
+import torch
+
+from ._checks import check_points, check_shape, default_valid
+
+__all__ = ["FundamentalResult", "find_fundamental", "refit_fundamental", "ransac_update_num_iters"]
+
+_FLT_EPSILON = 1.1920928955078125e-07
+_DBL_MIN = 2.2250738585072014e-308
+_MODEL_POINTS = 7
+_LMEDS_OUTLIER_RATIO = 0.45  # OpenCV LMeDSPointSetRegistrator: fixed prior for its iteration count
+_MIN_POINTS = 8  # VINS rejectWithF skips F estimation below 8 tracks
+_LMEDS_EXACT_FIT = 1e-12  # px^2: LMedS medians below this are ties (see _robust_group)
+_MIN_RANSAC_POINTS = 15  # OpenCV: 8..14 points => LMedS even when FM_RANSAC is asked for
+
+METHOD_NONE, METHOD_LMEDS, METHOD_RANSAC = 0, 1, 2
+
+
+# ----------------------------------------------------------------------------------------------
+# result type
+# ----------------------------------------------------------------------------------------------
+class _FundamentalPair(NamedTuple):
+    F: torch.Tensor
+    inliers: torch.Tensor
+
+
+class FundamentalResult(_FundamentalPair):
+    """Result of :func:`find_fundamental`; unpacks as ``F, inliers = find_fundamental(...)``.
+
+    Attributes:
+        F: ``(B, 3, 3)`` best RANSAC (or LMedS) 7-point hypothesis, unit Frobenius norm, largest
+            entry positive; NaN where ``ok`` is False.
+        inliers: ``(B, N)`` bool inlier mask from the RANSAC scoring (never True on a masked-out
+            slot). Where ``ok`` is False every valid (finite) point is reported as an inlier, so that
+            a tracker keeps its tracks (spec §3.8).
+        ok: ``(B,)`` bool, a model was found (OpenCV would return a non-empty F).
+        num_iters: ``(B,)`` int64 number of minimal samples drawn for the problem.
+        method: ``(B,)`` int8, 0 = none (< 8 valid points), 1 = LMedS (8..14), 2 = RANSAC (>= 15).
+    """
+
+    ok: torch.Tensor
+    num_iters: torch.Tensor
+    method: torch.Tensor
+
+    def __new__(cls, F, inliers, ok, num_iters, method):
+        self = super().__new__(cls, F, inliers)
+        self.ok = ok
+        self.num_iters = num_iters
+        self.method = method
+        return self
+
+    def __reduce__(self):
+        return (FundamentalResult, (self.F, self.inliers, self.ok, self.num_iters, self.method))
+
+
+# ----------------------------------------------------------------------------------------------
+# OpenCV's random sample stream (cv::RNG, multiply-with-carry), tabulated on the host and cached
+# ----------------------------------------------------------------------------------------------
+_U32 = 0xFFFFFFFF
+_U64 = 0xFFFFFFFFFFFFFFFF
+OPENCV_SEED = -1  # cv::RNG((uint64)-1), the state OpenCV's RANSAC/LMedS re-seed with on every call
+_RAW_CACHE: collections.OrderedDict = collections.OrderedDict()  # state -> (outputs, state after them)
+_RAW_CACHE_STATES = 16  # LRU bound: a fresh generator seed per call must not grow memory forever
+
+
+def _rng_raw(state: int, count: int) -> list:
+    """First ``count`` outputs of ``cv::RNG(state).next()``: ``state = lo32(state) * 4164903690 +
+    hi32(state)``, output ``lo32(state)``."""
+    vals, s = _RAW_CACHE.get(state, ([], state))
+    if len(vals) < count:
+        vals = list(vals)
+        for _ in range(count - len(vals)):
+            s = (s & _U32) * 4164903690 + (s >> 32)
+            vals.append(s & _U32)
+    _RAW_CACHE[state] = (vals, s)
+    _RAW_CACHE.move_to_end(state)
+    while len(_RAW_CACHE) > _RAW_CACHE_STATES:
+        _RAW_CACHE.popitem(last=False)
+    return vals
+
+
+@functools.lru_cache(maxsize=256)  # (num, 7) int64 each: <= 14 MB for num = 1000
+def _opencv_samples(state: int, n: int, num: int) -> torch.Tensor:
+    """The first ``num`` 7-point index subsets OpenCV's ``getSubset`` draws for ``n`` points with
+    ``cv::RNG(state)``: ``rng.uniform(0, n) = next() % n``, redrawn while it repeats an index of
+    the subset. (OpenCV also redraws a subset whose last point is collinear with two others; here
+    such a subset is kept and marked degenerate instead, see ``_collinear_last``.) ``(num, 7)`` int64."""
+    raw = _rng_raw(state, 8 * num + 64)
+    out = []
+    pos = 0
+    while len(out) < num:
+        cur: list = []
+        while len(cur) < _MODEL_POINTS:
+            if pos >= len(raw):
+                raw = _rng_raw(state, 2 * len(raw))
+            v = raw[pos] % n
+            pos += 1
+            if v not in cur:
+                cur.append(v)
+        out.append(cur)
+    return torch.tensor(out, dtype=torch.int64).view(num, _MODEL_POINTS)
+
+
+def _state_of(seed: int) -> int:
+    """Seed -> ``cv::RNG`` state: two's complement 64 bits; 0 means OpenCV's ``(uint64)-1`` too, so
+    ``seed=0``, ``seed=-1`` and no seed all reproduce cv2 (``cv::RNG(0)``'s own 0xffffffff state is
+    not reachable, nobody needs it)."""
+    s = int(seed) & _U64
+    return s if s else _U64
+
+
+# ----------------------------------------------------------------------------------------------
+# OpenCV helpers
+# ----------------------------------------------------------------------------------------------
+def ransac_update_num_iters(confidence: float, ep: torch.Tensor, model_points: int, max_iters: torch.Tensor) -> torch.Tensor:
+    """OpenCV ``RANSACUpdateNumIters`` elementwise: ``ep`` outlier ratio, ``max_iters`` current bound."""
+    p = min(max(float(confidence), 0.0), 1.0)
+    ep = ep.to(torch.float64).clamp(0.0, 1.0)
+    num = math.log(max(1.0 - p, _DBL_MIN))
+    denom_raw = 1.0 - (1.0 - ep) ** model_points
+    denom = torch.log(denom_raw.clamp_min(_DBL_MIN))
+    mi = max_iters.to(torch.float64)
+    capped = (denom >= 0) | (-num >= mi * (-denom))
+    # cvRound = round half to even, as torch.round
+    it = torch.where(capped, mi, torch.round(num / torch.where(denom < 0, denom, torch.full_like(denom, -1.0))))
+    it = torch.where(denom_raw < _DBL_MIN, torch.zeros_like(it), it)
+    return it.to(max_iters.dtype)
+
+
+def _solve_cubic(c: torch.Tensor):
+    """Real roots of ``c[...,0] x^3 + c[...,1] x^2 + c[...,2] x + c[...,3]`` (float64, batched).
+
+    Returns ``roots (..., 3)`` and ``ok (..., 3)`` bool. All lanes stay finite (both branches of every
+    ``torch.where`` are evaluated). Roots are polished with two Newton steps on the original cubic.
+    """
+    a, b, cc, d = c.unbind(-1)
+    scale = c.abs().amax(-1).clamp_min(1e-300)
+    a, b, cc, d = a / scale, b / scale, cc / scale, d / scale
+    one = torch.ones_like(a)
+    is_cubic = a.abs() > 1e-12
+    a_s = torch.where(is_cubic, a, one)
+    p, q, r = b / a_s, cc / a_s, d / a_s
+    # depressed cubic t^3 + P t + Q, x = t - p/3
+    P = q - p * p / 3.0
+    Q = 2.0 * p ** 3 / 27.0 - p * q / 3.0 + r
+    disc = (Q / 2.0) ** 2 + (P / 3.0) ** 3
+    # one real root (disc > 0): Cardano
+    sq = torch.sqrt(disc.clamp_min(0.0))
+    u = -Q / 2.0 + sq
+    v = -Q / 2.0 - sq
+    t1 = torch.sign(u) * u.abs().pow(1.0 / 3.0) + torch.sign(v) * v.abs().pow(1.0 / 3.0)
+    # three real roots (disc <= 0): trigonometric
+    mneg = (-P / 3.0).clamp_min(0.0)
+    m = 2.0 * torch.sqrt(mneg)
+    den = torch.where(mneg > 0, P * m, -one)
+    arg = torch.where(mneg > 0, (3.0 * Q / den).clamp(-1.0, 1.0), torch.zeros_like(Q))
+    theta = torch.acos(arg) / 3.0
+    k = torch.arange(3, device=c.device, dtype=c.dtype)
+    t3 = m[..., None] * torch.cos(theta[..., None] - 2.0 * math.pi * k / 3.0)
+    one_root = disc > 0
+    cub_roots = torch.where(one_root[..., None], torch.stack([t1, t1, t1], -1), t3) - (p / 3.0)[..., None]
+    cub_ok = torch.stack([torch.ones_like(one_root), ~one_root, ~one_root], -1)
+    # quadratic / linear fallback (OpenCV solveCubic handles a == 0 the same way)
+    is_quad = b.abs() > 1e-12
+    b_s = torch.where(is_quad, b, one)
+    qd = cc * cc - 4.0 * b * d
+    sqd = torch.sqrt(qd.clamp_min(0.0))
+    qr = torch.stack([(-cc + sqd) / (2.0 * b_s), (-cc - sqd) / (2.0 * b_s)], -1)
+    c_s = torch.where(cc.abs() > 1e-12, cc, one)
+    lin = -d / c_s
+    quad_roots = torch.where(is_quad[..., None], qr, torch.stack([lin, lin], -1))
+    quad_ok = torch.where(
+        is_quad[..., None],
+        (qd >= 0)[..., None].expand_as(qr),
+        torch.stack([cc.abs() > 1e-12, torch.zeros_like(is_quad)], -1),
+    )
+    quad_roots = torch.cat([quad_roots, torch.zeros_like(quad_roots[..., :1])], -1)
+    quad_ok = torch.cat([quad_ok, torch.zeros_like(quad_ok[..., :1])], -1)
+    roots = torch.where(is_cubic[..., None], cub_roots, quad_roots)
+    ok = torch.where(is_cubic[..., None], cub_ok, quad_ok)
+    # Newton polish (guards against cancellation when |a| is small but above the cut-off)
+    A, Bq, C, D = (t[..., None] for t in (a, b, cc, d))
+    for _ in range(2):
+        f = ((A * roots + Bq) * roots + C) * roots + D
+        fp = (3.0 * A * roots + 2.0 * Bq) * roots + C
+        step = torch.where(fp.abs() > 1e-300, f / torch.where(fp.abs() > 1e-300, fp, torch.ones_like(fp)), torch.zeros_like(f))
+        new = roots - step
+        roots = torch.where(torch.isfinite(new) & (step.abs() < 1e3 * (1.0 + roots.abs())), new, roots)
+    ok = ok & torch.isfinite(roots)
+    return torch.where(ok, roots, torch.zeros_like(roots)), ok
+
+
+def _cofactor(M: torch.Tensor) -> torch.Tensor:
+    """Cofactor matrix of ``(..., 3, 3)``: rows are cross products of the other two rows."""
+    r0, r1, r2 = M.unbind(-2)
+    return torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], -2)
+
+
+def _epipolar_rows(x0, y0, x1, y1):
+    """Rows of the linear system ``[x1 y1 1] F [x0 y0 1]^T = 0`` in OpenCV's (row-major F) order."""
+    one = torch.ones_like(x0)
+    return torch.stack([x1 * x0, x1 * y0, x1, y1 * x0, y1 * y0, y1, x0, y0, one], -1)
+
+
+def _collinear_last(m: torch.Tensor) -> torch.Tensor:
+    """OpenCV ``haveCollinearPoints`` for a full 7-point subset: is the last point on a line through
+    two earlier ones (or too close to one)? ``m: (..., 7, 2)`` -> ``(...)`` bool."""
+    d = m[..., :-1, :] - m[..., -1:, :]  # (..., 6, 2)
+    j, k = torch.tril_indices(6, 6, offset=-1, device=m.device)  # pairs k < j
+    d1, d2 = d[..., j, :], d[..., k, :]
+    cross = d2[..., 0] * d1[..., 1] - d2[..., 1] * d1[..., 0]
+    tol = _FLT_EPSILON * (d1.abs().sum(-1) + d2.abs().sum(-1))
+    return (cross.abs() <= tol).any(-1)
+
+
+def _run_7point(m1: torch.Tensor, m2: torch.Tensor):
+    """Batched OpenCV ``run7Point``. ``m1, m2: (M, 7, 2)`` float64 -> ``F (M, 3, 3, 3)`` (up to three
+    solutions, unit Frobenius norm) and ``ok (M, 3)``.
+
+    Like OpenCV: Hartley-style normalisation (centroid, mean distance sqrt(2)), the two-dimensional
+    null space of the 7x9 system (here from a complete QR of its transpose: the last two columns of
+    Q, which is much faster than a batched SVD and equally stable for a rank-7 system), the real
+    roots of det(a*F1 + (1 - a)*F2) = 0, then de-normalisation.
+    """
+    c1 = m1.mean(-2, keepdim=True)
+    c2 = m2.mean(-2, keepdim=True)
+    s1 = (m1 - c1).norm(dim=-1).mean(-1)
+    s2 = (m2 - c2).norm(dim=-1).mean(-1)
+    good = (s1 >= _FLT_EPSILON) & (s2 >= _FLT_EPSILON)
+    s1 = math.sqrt(2.0) / torch.where(good, s1, torch.ones_like(s1))
+    s2 = math.sqrt(2.0) / torch.where(good, s2, torch.ones_like(s2))
+    n1 = (m1 - c1) * s1[:, None, None]
+    n2 = (m2 - c2) * s2[:, None, None]
+    A = _epipolar_rows(n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1])  # (M, 7, 9)
+    Qm = torch.linalg.qr(A.transpose(-1, -2), mode="complete").Q  # (M, 9, 9)
+    f1 = Qm[..., :, 7]
+    f2 = Qm[..., :, 8]
+    Fa = (f1 - f2).reshape(-1, 3, 3)  # F(alpha) = alpha * Fa + Fb
+    Fb = f2.reshape(-1, 3, 3)
+    # det(alpha*Fa + Fb) = alpha^3 det Fa + alpha^2 <cof Fa, Fb> + alpha <Fa, cof Fb> + det Fb
+    ca, cb = _cofactor(Fa), _cofactor(Fb)  # det M = <M, cof M> / 3 = <row 0, cof row 0>
+    coeffs = torch.stack(
+        [
+            (Fa[:, 0] * ca[:, 0]).sum(-1),
+            (ca * Fb).sum((-1, -2)),
+            (Fa * cb).sum((-1, -2)),
+            (Fb[:, 0] * cb[:, 0]).sum(-1),
+        ],
+        -1,
+    )
+    roots, rok = _solve_cubic(coeffs)  # (M, 3)
+    Fn = roots[..., None, None] * Fa[:, None] + Fb[:, None]  # (M, 3, 3, 3)
+    # de-normalise: F = T2^T Fn T1, T = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]]
+    zero = torch.zeros_like(s1)
+    onev = torch.ones_like(s1)
+
+    def _T(s, c):
+        return torch.stack(
+            [
+                torch.stack([s, zero, -s * c[:, 0, 0]], -1),
+                torch.stack([zero, s, -s * c[:, 0, 1]], -1),
+                torch.stack([zero, zero, onev], -1),
+            ],
+            -2,
+        )
+
+    T1 = _T(s1, c1)[:, None]
+    T2 = _T(s2, c2)[:, None]
+    F = T2.transpose(-1, -2) @ Fn @ T1
+    nrm = F.flatten(-2).norm(dim=-1)
+    fok = rok & good[:, None] & (nrm > 0) & torch.isfinite(nrm)
+    F = F / torch.where(fok, nrm, torch.ones_like(nrm))[..., None, None]
+    F = torch.where(fok[..., None, None], F, torch.zeros_like(F))
+    return F, fok
+
+
+def _epipolar_terms(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor):
+    """Algebraic residual and line norms for K models on N points, as three batched matmuls.
+
+    ``F: (B, K, 3, 3)``, ``x1, x2: (B, N, 2)`` -> ``d2 = (x2^T F x1)^2``, ``s2 = |(F x1)_xy|^2`` and
+    ``s1 = |(F^T x2)_xy|^2``, each ``(B, N, K)``."""
+    B, K = F.shape[:2]
+    h1 = torch.cat([x1, torch.ones_like(x1[..., :1])], -1)  # (B, N, 3)
+    h2 = torch.cat([x2, torch.ones_like(x2[..., :1])], -1)
+    outer = (h2[..., :, None] * h1[..., None, :]).flatten(-2)  # (B, N, 9)
+    d = outer @ F.flatten(-2).transpose(-1, -2)  # (B, N, K)
+    # F x1, rows 0 and 1 of every model: columns [row0 of model 0..K-1, row1 of model 0..K-1]
+    l2 = h1 @ F[:, :, :2, :].transpose(1, 2).reshape(B, 2 * K, 3).transpose(-1, -2)  # (B, N, 2K)
+    l1 = h2 @ F[:, :, :, :2].permute(0, 3, 1, 2).reshape(B, 2 * K, 3).transpose(-1, -2)
+    l2 = l2 * l2  # x*x: much cheaper than pow/square on CPU
+    l1 = l1 * l1
+    return d * d, l1[..., :K] + l1[..., K:], l2[..., :K] + l2[..., K:]
+
+
+def _epipolar_errors(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
+    """OpenCV ``computeError``: ``max(d1^2, d2^2)`` squared point-to-epipolar-line distances,
+    ``(B, N, K)`` for ``F: (B, K, 3, 3)``; inf where a line is degenerate."""
+    d2, s1, s2 = _epipolar_terms(F, x1, x2)
+    smin = torch.minimum(s1, s2)
+    pos = smin > 0
+    return torch.where(pos, d2 / torch.where(pos, smin, torch.ones_like(smin)), torch.full_like(d2, float("inf")))
+
+
+def _inlier_mask(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor, thr2: float) -> torch.Tensor:
+    """``max(d1^2, d2^2) <= thr^2`` for K models on N points -> ``(B, N, K)`` bool, without divisions:
+    ``d^2 <= thr^2 * min(s1, s2)`` (and a non-degenerate line).
+
+    OpenCV compares ``(float)err <= (float)thr^2``; this differs only for errors within float32
+    rounding of the threshold."""
+    d2, s1, s2 = _epipolar_terms(F, x1, x2)
+    smin = torch.minimum(s1, s2)
+    return (d2 <= smin * thr2) & (smin > 0)
+
+
+def _canonical_sign(F: torch.Tensor) -> torch.Tensor:
+    """Unit Frobenius norm with the largest-magnitude entry positive (``(..., 3, 3)``)."""
+    flat = F.flatten(-2)
+    nrm = flat.norm(dim=-1, keepdim=True)
+    flat = flat / torch.where(nrm > 0, nrm, torch.ones_like(nrm))
+    idx = flat.abs().argmax(-1, keepdim=True)
+    sgn = torch.where(flat.gather(-1, idx) < 0, -1.0, 1.0).to(flat.dtype)
+    return (flat * sgn).view_as(F)
+
+
+# ----------------------------------------------------------------------------------------------
+# the batched robust loop
+# ----------------------------------------------------------------------------------------------
+def _compact(valid: torch.Tensor, *tensors: torch.Tensor):
+    """Move the valid slots of each row to the front and cut to the largest count; returns the
+    original slot ids too (the random stream is keyed by slot id, so compaction changes nothing)."""
+    n = valid.sum(-1)
+    width = max(int(n.max()), 1) if valid.shape[0] else 1
+    order = torch.argsort((~valid).to(torch.int8), dim=-1, stable=True)[:, :width]
+    out = [valid.gather(1, order)]
+    for t in tensors:
+        out.append(t.gather(1, order[..., None].expand(-1, -1, t.shape[-1])))
+    return order, out
+
+
+def _robust_group(x1, x2, valid, n_host, states, thr2, confidence, max_iters, H, lmeds):
+    """Run RANSAC (``lmeds=False``) or LMedS on one group of problems (all rows use one method).
+
+    ``x1, x2: (G, N, 2)`` float64, finite, valid slots compacted to the front (``valid (G, N)``,
+    ``n_host`` the per-row counts as Python ints); ``states`` per-row ``cv::RNG`` states. Returns the
+    best model ``(G, 3, 3)``, inlier mask ``(G, N)``, ok ``(G,)`` and samples drawn ``(G,)``.
+
+    RANSAC reproduces OpenCV's sequential loop exactly although a round evaluates many samples at
+    once: within a round the running best count (cummax), the iteration bound after every sample
+    and the first sample after which OpenCV would stop are all computed, and only samples up to that
+    one count. Hence the result does not depend on the round size.
+    """
+    G, N = valid.shape
+    dev = x1.device
+    n = valid.sum(-1)
+    nf = n.to(torch.float64)
+    if lmeds:
+        it0 = ransac_update_num_iters(
+            confidence, torch.tensor(_LMEDS_OUTLIER_RATIO), _MODEL_POINTS, torch.tensor(max(int(max_iters), 1))
+        )
+        num = max(int(it0), 3)
+    else:
+        num = max(int(max_iters), 1)
+    table = torch.stack([_opencv_samples(st, nb, num) for st, nb in zip(states, n_host)]).to(dev)  # (G, num, 7)
+    best_F = torch.zeros(G, 3, 3, dtype=torch.float64, device=dev)
+    best_score = torch.full((G,), float("inf") if lmeds else -1.0, dtype=torch.float64, device=dev)
+    done = torch.zeros(G, dtype=torch.int64, device=dev)
+    niters = torch.full((G,), num, dtype=torch.int64, device=dev)
+    ar = torch.arange(max(H, 1), device=dev)
+    rnd = 0
+    while True:
+        act = (done < niters).nonzero().squeeze(-1)  # the one host sync per round
+        if act.numel() == 0:
+            break
+        # growing rounds (16, 32, ... up to H samples): little waste when OpenCV would stop early
+        Hr = min(H, 16 << rnd, num)
+        rnd += 1
+        A = act.numel()
+        a1, a2, av = x1[act], x2[act], valid[act]
+        d0, n0 = done[act], niters[act]
+        g = d0[:, None] + ar[:Hr]  # (A, Hr) sample ids
+        g_ok = g < n0[:, None]
+        idx = table[act[:, None], g.clamp_max(num - 1)]  # (A, Hr, 7)
+        bidx = torch.arange(A, device=dev)[:, None, None]
+        s1 = a1[bidx, idx].reshape(A * Hr, _MODEL_POINTS, 2)
+        s2 = a2[bidx, idx].reshape(A * Hr, _MODEL_POINTS, 2)
+        Fh, fok = _run_7point(s1, s2)  # (A*Hr, 3, 3, 3), (A*Hr, 3)
+        degenerate = _collinear_last(s1) | _collinear_last(s2)
+        fok = (fok & ~degenerate[:, None] & g_ok.reshape(-1)[:, None]).view(A, Hr * 3)
+        Fh = Fh.view(A, Hr * 3, 3, 3)
+        if lmeds:
+            err = _epipolar_errors(Fh, a1, a2)  # (A, N, 3Hr)
+            e = torch.where(av[..., None], err, torch.full_like(err, float("inf")))
+            kth = (n[act] // 2)[:, None, None].expand(-1, 1, Hr * 3)
+            med = e.sort(dim=1).values.gather(1, kth)[:, 0]
+            # Deviation: with n <= 13 the median index n // 2 <= 6 falls among the 7 sample points,
+            # whose errors are rounding noise (~1e-25 px^2), so OpenCV's pick among exact fits is
+            # decided by floating-point noise. Medians below (1e-6 px)^2 are treated as equal and
+            # the first such model in OpenCV's draw order wins (deterministic, same statistics).
+            med = med.clamp_min(_LMEDS_EXACT_FIT)
+            score = torch.where(fok, med, torch.full_like(med, float("inf")))
+            cand, k = score.min(-1)  # first minimum = OpenCV's sequential strict "<"
+            better = cand < best_score[act]
+            new_n = n0
+            used = torch.minimum(d0 + Hr, n0) - d0
+        else:
+            # score only real roots: most samples have one, so move valid models to the front
+            # (stable, keeps OpenCV's order) and cut to the largest valid count of any problem
+            vorder = torch.argsort((~fok).to(torch.int8), dim=1, stable=True)
+            kmax = max(int(fok.sum(1).max()), 1)
+            vorder = vorder[:, :kmax]
+            Fv = Fh.gather(1, vorder[..., None, None].expand(-1, -1, 3, 3))
+            inl = _inlier_mask(Fv, a1, a2, thr2) & av[..., None]  # (A, N, kmax)
+            cnt = torch.full((A, Hr * 3), -1.0, dtype=torch.float64, device=dev)
+            cnt.scatter_(1, vorder, inl.sum(1).to(torch.float64))
+            cnt = torch.where(fok, cnt, torch.full_like(cnt, -1.0))
+            c3 = cnt.view(A, Hr, 3)
+            prev = best_score[act]
+            floor = prev.clamp_min(_MODEL_POINTS - 1)  # accept only > max(best, modelPoints - 1)
+            run_best = torch.maximum(torch.cummax(c3.amax(-1), dim=1).values, prev[:, None])  # after sample i
+            improved = run_best > floor[:, None]
+            ep = (nf[act][:, None] - run_best) / nf[act][:, None]
+            n_after = torch.where(
+                improved, ransac_update_num_iters(confidence, ep, _MODEL_POINTS, n0[:, None].expand(A, Hr)), n0[:, None]
+            )
+            stop = (g + 1 >= n_after) | ~g_ok  # OpenCV: for (iter = 0; iter < niters; iter++)
+            i_stop = torch.where(stop.any(1), stop.to(torch.int8).argmax(1), torch.full_like(d0, Hr - 1))
+            within = ar[:Hr][None, :] <= i_stop[:, None]
+            cm = torch.where(within[..., None], c3, torch.full_like(c3, -1.0)).view(A, Hr * 3)
+            cand, k = cm.max(-1)  # first maximum = OpenCV's sequential strict ">"
+            better = cand > floor
+            new_n = n_after.gather(1, i_stop[:, None])[:, 0]
+            used = i_stop + 1
+        newF = Fh[torch.arange(A, device=dev), k]
+        best_F[act] = torch.where(better[:, None, None], newF, best_F[act])
+        best_score[act] = torch.where(better, cand, best_score[act])
+        niters[act] = new_n
+        done[act] = d0 + used
+    if lmeds:
+        have = torch.isfinite(best_score)
+        sigma = 2.5 * 1.4826 * (1.0 + 5.0 / (n - _MODEL_POINTS).clamp_min(1).to(torch.float64))
+        sigma = (sigma * torch.where(have, best_score, torch.zeros_like(best_score)).sqrt()).clamp_min(0.001)
+        inl = (_epipolar_errors(best_F[:, None], x1, x2)[..., 0].to(torch.float32) <= (sigma * sigma).to(torch.float32)[:, None]) & valid
+        ok = have & (inl.sum(-1) >= _MODEL_POINTS)
+    else:
+        ok = best_score >= _MODEL_POINTS
+        inl = _inlier_mask(best_F[:, None], x1, x2, thr2)[..., 0] & valid
+    return best_F, inl, ok, done
+
+
+def _seeds(B: int, generator, seed) -> list:
+    """Per-problem ``cv::RNG`` states as Python ints (see the seeding rule of find_fundamental)."""
+    if seed is not None:
+        s = torch.as_tensor(seed, dtype=torch.int64).cpu()
+        if s.dim() == 0:
+            s = s.expand(B)
+        check_shape(s, (B,), "seed")
+        return [_state_of(v) for v in s.tolist()]
+    if generator is not None:
+        v = torch.randint(-(2**63), 2**63 - 1, (1,), dtype=torch.int64, generator=generator, device=generator.device)
+        return [_state_of(int(v.item()))] * B
+    return [_state_of(OPENCV_SEED)] * B
+
+
+def find_fundamental(
+    p1: torch.Tensor,
+    p2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    threshold: float = 1.0,
+    confidence: float = 0.99,
+    max_iters: int = 1000,
+    generator: torch.Generator | None = None,
+    batch_hypotheses: int = 128,
+    seed: Union[None, int, Sequence[int], torch.Tensor] = None,
+) -> FundamentalResult:
+    """Robust fundamental matrices for B point-set pairs at once (``cv2.findFundamentalMat`` with
+    ``FM_RANSAC``, batched).
+
+    Args:
+        p1, p2: ``(B, N, 2)`` float, pixels ``(x, y)`` (VINS: the 460-px virtual pinhole), matched
+            slot by slot.
+        valid: ``(B, N)`` bool, which slots hold a correspondence (default all). Masked-out slots may
+            contain NaN.
+        threshold: inlier distance in pixels (VINS ``F_threshold``); ``<= 0`` means 3 (OpenCV).
+        confidence: RANSAC confidence for the adaptive iteration bound (outside (0, 1): 0.99).
+        max_iters: cap on minimal samples per problem (OpenCV default 1000).
+        generator: optional ``torch.Generator``; one int64 is drawn from it (``torch.randint`` on the
+            generator's device) and used as the ``cv::RNG`` state of every problem of the call.
+        batch_hypotheses: the largest number of minimal samples evaluated per problem per round
+            (rounds grow 16, 32, 64, ... up to it). Memory/speed knob only: results do not depend on it.
+        seed: optional int or ``(B,)`` ints, per-problem ``cv::RNG`` states (two's complement, so
+            ``-1`` is ``(uint64)-1``; 0 is mapped to it as well; takes precedence over
+            ``generator``). Default (neither given), 0 or -1: OpenCV's own seed for every problem,
+            so the masks reproduce cv2's.
+
+    Returns:
+        :class:`FundamentalResult` ``(F, inliers)`` with extra attributes ``ok``, ``num_iters``,
+        ``method``.
+
+    Convention:
+        Per problem with n valid, finite correspondences:
+        * n < 8: no estimation (VINS skips it): F NaN, every valid point an inlier, ``ok`` False.
+        * 8 <= n <= 14: OpenCV's silent LMedS fallback: ``max(3, RANSACUpdateNumIters(conf, 0.45,
+          7, max_iters))`` (300 for 0.99) 7-point samples, the model of least median error (upper
+          median, ``err[n // 2]`` of the sorted errors), inliers ``err <= sigma^2`` with
+          ``sigma = max(0.001, 2.5 * 1.4826 * (1 + 5 / (n - 7)) * sqrt(median))``; ``ok`` iff at
+          least 7 inliers. ``threshold`` is ignored, as in OpenCV. Deviation: medians below
+          (1e-6 px)^2 count as equal (first in draw order wins). For n <= 13 OpenCV's median rank
+          n // 2 <= 6 lies among the sample's own 7 exact-fit points, so its choice between models
+          is floating-point noise and cannot be reproduced; from n = 14 on the masks are OpenCV's.
+        * n >= 15: RANSAC with the 7-point solver (up to three models per sample, each scored);
+          a model replaces the best one only with strictly more inliers (and at least 7); the
+          iteration bound follows OpenCV's ``RANSACUpdateNumIters(confidence, outlier ratio, 7,
+          bound)``, capped by ``max_iters``. Rounds run while some problem is below its bound;
+          within a round the bound is replayed after every sample, so each problem stops at exactly
+          OpenCV's last sample (``num_iters``) and later samples of the round are discarded.
+        * All outliers (unrelated points): as OpenCV, some 7-point model that fits its own sample
+          (>= 7 inliers, ``ok`` True) after ``max_iters`` samples.
+        * No model found (all samples degenerate, e.g. all points identical): F NaN, every valid
+          point an inlier, ``ok`` False.
+        The returned F is the best minimal-sample model (as OpenCV; no re-fit), unit Frobenius norm,
+        largest entry positive; re-fit with :func:`refit_fundamental` on ``inliers`` if wanted.
+        Points are rounded to float32 (as OpenCV), all arithmetic is float64; F is returned in the
+        dtype of ``p1``. Not differentiable (the mask is discrete; see :func:`refit_fundamental`).
+        One host sync per round (loop control) plus one at the start (per-problem counts).
+
+    Seeding rule:
+        Sample g of problem b is the g-th 7-subset OpenCV's ``getSubset`` would draw with
+        ``cv::RNG(seed_b)`` from the n_b valid points in slot order. It depends only on (seed_b,
+        n_b), so a problem in a batch gives exactly the same result as a single call on its valid
+        points with the same seed. (Deviation: OpenCV redraws a subset whose last point is
+        collinear with two others within FLT_EPSILON; here that sample just yields no model, so on
+        such degenerate data the later samples differ from OpenCV's.)
+    """
+    check_points(p1, "p1")
+    check_points(p2, "p2")
+    check_shape(p2, tuple(p1.shape), "p2")
+    valid = default_valid(p1, valid)
+    B, N = valid.shape
+    dev, out_dtype = p1.device, p1.dtype
+    if threshold <= 0:
+        threshold = 3.0
+    if not (2.220446049250313e-16 <= confidence <= 1 - 2.220446049250313e-16):
+        confidence = 0.99
+    H = int(batch_hypotheses)
+    if H < 1:
+        raise ValueError(f"batch_hypotheses: expected >= 1, got {batch_hypotheses}")
+    states = _seeds(B, generator, seed)
+
+    # OpenCV converts the points to float32 before anything else; the solver then runs in float64
+    x1 = p1.detach().to(torch.float32).to(torch.float64)
+    x2 = p2.detach().to(torch.float32).to(torch.float64)
+    finite = torch.isfinite(x1).all(-1) & torch.isfinite(x2).all(-1)
+    eff = valid & finite
+    # keep masked-out lanes finite: every later torch.where evaluates both branches
+    x1 = torch.where(eff[..., None], x1, torch.zeros_like(x1))
+    x2 = torch.where(eff[..., None], x2, torch.zeros_like(x2))
+    n = eff.sum(-1)
+    n_host = n.tolist()  # host sync: sample tables are per (seed, n)
+
+    F = torch.full((B, 3, 3), float("nan"), dtype=torch.float64, device=dev)
+    inliers = eff.clone()
+    ok = torch.zeros(B, dtype=torch.bool, device=dev)
+    iters = torch.zeros(B, dtype=torch.int64, device=dev)
+    method = torch.full((B,), METHOD_NONE, dtype=torch.int8, device=dev)
+    method = torch.where(n >= _MIN_POINTS, torch.full_like(method, METHOD_LMEDS), method)
+    method = torch.where(n >= _MIN_RANSAC_POINTS, torch.full_like(method, METHOD_RANSAC), method)
+
+    for code, lo, hi in ((METHOD_RANSAC, _MIN_RANSAC_POINTS, None), (METHOD_LMEDS, _MIN_POINTS, _MIN_RANSAC_POINTS)):
+        sel = [b for b in range(B) if n_host[b] >= lo and (hi is None or n_host[b] < hi)]
+        if not sel:
+            continue
+        rows = torch.tensor(sel, dtype=torch.int64, device=dev)
+        order, (gv, g1, g2) = _compact(eff[rows], x1[rows], x2[rows])
+        gF, ginl, gok, gdone = _robust_group(
+            g1, g2, gv, [n_host[b] for b in sel], [states[b] for b in sel], threshold * threshold,
+            confidence, max_iters, H, code == METHOD_LMEDS,
+        )
+        full_inl = torch.zeros(rows.numel(), N, dtype=torch.bool, device=dev).scatter_(1, order, ginl)
+        F[rows] = torch.where(gok[:, None, None], _canonical_sign(gF), F[rows])
+        inliers[rows] = torch.where(gok[:, None], full_inl, eff[rows])
+        ok[rows] = gok
+        iters[rows] = gdone
+    return FundamentalResult(F.to(out_dtype), inliers, ok, iters, method)
+
+
+
+
+# ----------------------------------------------------------------------------------------------
+# differentiable weighted 8-point refit
+# ----------------------------------------------------------------------------------------------
+def refit_fundamental(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Weighted, normalised 8-point fundamental matrix, differentiable w.r.t. points and weights.
+
+    Args:
+        p1, p2: ``(B, N, 2)`` float, pixels ``(x, y)``.
+        weights: ``(B, N)`` float >= 0 (or bool, e.g. the ``inliers`` of :func:`find_fundamental`).
+            Slots with weight 0 or a non-finite coordinate are ignored (they may hold NaN).
+
+    Returns:
+        ``F: (B, 3, 3)`` in the dtype of ``p1``, ``[p2, 1] F [p1, 1]^T ~ 0``; NaN for problems with
+        fewer than 8 slots of positive weight.
+
+    Convention:
+        * Hartley normalisation per image with weighted centroid and weighted RMS distance sqrt(2)
+          (RMS rather than OpenCV's mean distance: it is smooth where a point hits the centroid).
+        * The algebraic solution is the eigenvector of the smallest eigenvalue of the 9x9 weighted
+          normal matrix ``sum_i w_i a_i a_i^T`` (``torch.linalg.eigh``); rank 2 is enforced as
+          ``F (I - v v^T)`` with v the smallest eigenvector of ``F^T F`` (the same matrix as zeroing
+          the smallest singular value, without the sign ambiguity of an SVD).
+        * Output scaled to unit Frobenius norm with the largest-magnitude entry positive.
+        Gradients are well defined when the two smallest eigenvalues of the normal matrix (and of
+        ``F^T F``) are distinct, i.e. for >= 8 points in general position.
+    """
+    check_points(p1, "p1")
+    check_points(p2, "p2")
+    check_shape(p2, tuple(p1.shape), "p2")
+    check_shape(weights, tuple(p1.shape[:-1]), "weights")
+    dtype = p1.dtype
+    w = weights.to(dtype)
+    finite = torch.isfinite(p1).all(-1) & torch.isfinite(p2).all(-1) & torch.isfinite(w)
+    use = finite & (w > 0)
+    w = torch.where(use, w, torch.zeros_like(w))
+    # masked lanes -> 0 so that no NaN reaches a product (gradients of where are where(use, g, 0))
+    x1 = torch.where(use[..., None], p1, torch.zeros_like(p1))
+    x2 = torch.where(use[..., None], p2, torch.zeros_like(p2))
+    ok = use.sum(-1) >= _MIN_POINTS
+    W = w.sum(-1, keepdim=True)
+    W = torch.where(ok[:, None], W, torch.ones_like(W))
+
+    def _normalise(x):
+        c = (w[..., None] * x).sum(-2) / W  # (B, 2)
+        d = x - c[:, None]
+        r2 = (w * (d * d).sum(-1)).sum(-1, keepdim=True) / W  # weighted mean squared distance
+        r2 = torch.where(ok[:, None] & (r2 > 0), r2, torch.ones_like(r2))
+        s = torch.sqrt(2.0 / r2)  # (B, 1)
+        return d * s[..., None], c, s[:, 0]
+
+    n1, c1, s1 = _normalise(x1)
+    n2, c2, s2 = _normalise(x2)
+    A = _epipolar_rows(n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1])  # (B, N, 9)
+    M = (A * w[..., None]).transpose(-1, -2) @ A  # (B, 9, 9)
+    M = torch.where(ok[:, None, None], M, torch.eye(9, dtype=dtype, device=p1.device).expand_as(M) * torch.arange(1, 10, dtype=dtype, device=p1.device))
+    f = torch.linalg.eigh(M).eigenvectors[..., 0]  # smallest eigenvalue
+    Fh = f.view(-1, 3, 3)
+    v = torch.linalg.eigh(Fh.transpose(-1, -2) @ Fh).eigenvectors[..., 0]  # (B, 3)
+    Fh = Fh - (Fh @ v[..., None]) @ v[..., None, :]
+    zero = torch.zeros_like(s1)
+    one = torch.ones_like(s1)
+
+    def _T(s, c):
+        return torch.stack(
+            [
+                torch.stack([s, zero, -s * c[:, 0]], -1),
+                torch.stack([zero, s, -s * c[:, 1]], -1),
+                torch.stack([zero, zero, one], -1),
+            ],
+            -2,
+        )
+
+    F = _T(s2, c2).transpose(-1, -2) @ Fh @ _T(s1, c1)
+    F = _canonical_sign(F)
+    return torch.where(ok[:, None, None], F, torch.full_like(F, float("nan")))
