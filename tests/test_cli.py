@@ -238,11 +238,11 @@ def test_interrupt_leaves_no_partial_output(tmp_path, capsys, monkeypatch):
     calls = []
     real_track = FeatureTracker.track
 
-    def track(self, images, timestamps, right=None):
+    def track(self, images, timestamps, right=None, active=None):
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        return real_track(self, images, timestamps, right)
+        return real_track(self, images, timestamps, right, active)
 
     monkeypatch.setattr(FeatureTracker, "track", track)
     seq = make_asl(tmp_path / "a", n=3, small=True)

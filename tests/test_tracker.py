@@ -411,3 +411,23 @@ def test_long_run_memory_flat():
     print(f"max RSS after 1,000 frames {rss[0] / 1024:.1f} MiB, after 10,000 {rss[1] / 1024:.1f} MiB")
     assert rss[1] - rss[0] < 64 * 1024  # KiB: < 64 MiB growth over 9,000 frames
     assert int(tr.state.next_id[0]) > 0
+
+
+@pytest.mark.parametrize("mode", ["mono", "fusion"])
+def test_inactive_stream_is_left_untouched(mode):
+    """``active=False`` for a stream: its state does not change, as if the frame never came."""
+    cfg = tf.load_config(CFG_PATH if mode == "mono" else REPO / "configs" / "euroc_mono_mei.yaml")
+    seq = _euroc_sequence(8)
+    pair = FeatureTracker(cfg, num_streams=2, mode=mode)
+    single = FeatureTracker(cfg, num_streams=1, mode=mode)
+    for k, (t, img) in enumerate(seq):
+        alive1 = k not in (4, 5)
+        x = torch.from_numpy(img)[None, None]
+        f = pair.track(torch.cat([x, x]), [t, t], active=[True, alive1])
+        if alive1:
+            fs = single.track(x, [t])
+            assert torch.equal(f.ids[1], fs.ids[0]) and torch.equal(f.valid[1], fs.valid[0])
+            assert torch.allclose(f.uv[1], fs.uv[0], atol=1e-4)
+        else:
+            assert not bool(f.valid[1].any()) and not bool(f.published[1])
+    assert int(pair.state.next_id[1]) == int(single.state.next_id[0])

@@ -146,7 +146,7 @@ def run_track(
         try:
             for batch in stream:
                 t1 = time.perf_counter()
-                frame = tracker.track(batch.images.to(dev), batch.timestamps)
+                frame = tracker.track(batch.images.to(dev), batch.timestamps, active=batch.alive.to(dev))
                 if dev.type == "cuda":
                     torch.cuda.synchronize(dev)
                 tracker_seconds += time.perf_counter() - t1

@@ -150,6 +150,11 @@ class Pyramid:
             self.grads = [_scharr_impl(t) for t in self.levels]
         return self
 
+    def select(self, streams) -> Pyramid:
+        """The pyramid of a subset of streams (``streams``: slice / index tensor along B)."""
+        g = None if self.grads is None else [t[streams] for t in self.grads]
+        return Pyramid([t[streams] for t in self.levels], g, self.rounded)
+
     def to(self, *args, **kwargs) -> Pyramid:
         g = None if self.grads is None else [t.to(*args, **kwargs) for t in self.grads]
         return Pyramid([t.to(*args, **kwargs) for t in self.levels], g, self.rounded)

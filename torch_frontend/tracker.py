@@ -174,6 +174,40 @@ def _c_round(x: torch.Tensor) -> torch.Tensor:
     return torch.sign(x) * torch.floor(x.abs() + 0.5)
 
 
+class _StageTimer:
+    """Optional per-stage wall-clock accounting (``FeatureTracker.stage_times``), for benchmarks.
+
+    A no-op unless enabled; when enabled it synchronises CUDA at stage boundaries so that the times
+    are real (which costs a little throughput).
+    """
+
+    def __init__(self):
+        self.times: Optional[Dict[str, float]] = None
+        self._name = None
+
+    def __call__(self, name: str):
+        self._name = name
+        return self
+
+    def __enter__(self):
+        if self.times is not None:
+            import time
+
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        if self.times is not None:
+            import time
+
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            self.times[self._name] = self.times.get(self._name, 0.0) + time.perf_counter() - self._t0
+        return False
+
+
 @dataclasses.dataclass
 class TrackerState:
     """Everything the tracker carries between calls (one small dataclass of tensors)."""
@@ -253,7 +287,25 @@ class FeatureTracker:
         self.seed = int(seed)
         self.lk_kwargs = dict(win_size=21, max_level=3, max_iters=30, eps=0.01, min_eig_threshold=1e-4)
         self.base_mask = self._make_base_mask(fisheye_mask)
+        self._stage = _StageTimer()
         self.reset()
+
+    def compile(self, enable: bool = True) -> None:
+        """Use ``torch.compile`` for the LK iteration kernel (the hot loop), with eager as the
+        fallback (``enable=False``). Compilation happens on the first call (seconds to minutes)."""
+        from .lk import compile_step
+
+        compile_step(enable)
+
+    @property
+    def stage_times(self) -> Optional[Dict[str, float]]:
+        """Seconds spent per stage since ``enable_stage_times()`` (None when disabled)."""
+        return self._stage.times
+
+    def enable_stage_times(self, enabled: bool = True) -> None:
+        """Start (or stop) accumulating per-stage wall-clock times (CLAHE, pyramid, LK, RANSAC,
+        mask, detection, undistort) into ``stage_times``."""
+        self._stage.times = {} if enabled else None
 
     # ------------------------------------------------------------------ set-up
 
@@ -425,7 +477,8 @@ class FeatureTracker:
 
         kw = dict(self.lk_kwargs)
         kw.update(overrides)
-        return track_lk(prev_pyr, pyr, pts, valid, **kw)
+        with self._stage("lk"):
+            return track_lk(prev_pyr, pyr, pts, valid, **kw)
 
     def _detect(self, img_u8, pts, valid, track_cnt, do_detect: torch.Tensor, base_mask):
         """setMask + good features into the free slots for the streams in ``do_detect``.
@@ -443,16 +496,18 @@ class FeatureTracker:
         order = torch.sort(-key, dim=1, stable=True).indices
         order = torch.where(do_detect.unsqueeze(-1), order, torch.arange(K, device=order.device).expand(B, K))
         pts_s, valid_s, cnt_s = _gather(pts, order), _gather(valid, order), _gather(track_cnt, order)
-        keep, mask = distance_mask(
-            pts_s, cnt_s, valid_s & do_detect.unsqueeze(-1), self.config.min_dist,
-            base_mask=base_mask, height=self.height, width=self.width,
-        )
+        with self._stage("mask"):
+            keep, mask = distance_mask(
+                pts_s, cnt_s, valid_s & do_detect.unsqueeze(-1), self.config.min_dist,
+                base_mask=base_mask, height=self.height, width=self.width,
+            )
         valid_s = torch.where(do_detect.unsqueeze(-1), valid_s & keep, valid_s)
         n_keep = valid_s.sum(1)
         n_max = torch.where(do_detect, self.K - n_keep, torch.zeros_like(n_keep))
-        new_pts, new_valid = good_features_to_track(
-            img_u8, n_max, quality_level=0.01, min_distance=self.config.min_dist, mask=mask
-        )
+        with self._stage("detection"):
+            new_pts, new_valid = good_features_to_track(
+                img_u8, n_max, quality_level=0.01, min_distance=self.config.min_dist, mask=mask
+            )
         return order, valid_s, n_keep, new_pts, new_valid
 
     def _track_common(self, img, t, active, publish):
@@ -464,8 +519,10 @@ class FeatureTracker:
         if self.mode == "mono" and cfg.equalize:
             from .clahe import clahe
 
-            img_eq = clahe(img)
-        pyr = self._pyramid(img_eq)
+            with self._stage("clahe"):
+                img_eq = clahe(img)
+        with self._stage("pyramid"):
+            pyr = self._pyramid(img_eq)
         prev_pyr = s.prev_pyramid if s.prev_pyramid is not None else pyr
         run = active & s.has_image
         lk_valid = s.valid & run.unsqueeze(-1)
@@ -529,7 +586,8 @@ class FeatureTracker:
             p2 = self._virtual_pinhole(pts, fv)
             # a fixed seed per call, as OpenCV re-seeds its RNG identically on every call: a stream's
             # result then does not depend on the other streams or on the call history
-            res = find_fundamental(p1, p2, fv, threshold=cfg.F_threshold, confidence=0.99, seed=self.seed)
+            with self._stage("ransac"):
+                res = find_fundamental(p1, p2, fv, threshold=cfg.F_threshold, confidence=0.99, seed=self.seed)
             inliers = res[1]
             ok = getattr(res, "ok", None)
             if ok is None:
@@ -547,10 +605,13 @@ class FeatureTracker:
         pts, valid, ids, cnt, is_new = self._append(pts, valid, ids, cnt, new_pts, new_valid, n_keep)
 
         # undistortion and velocity (Mono: a feature's first two observations have zero velocity)
-        un = self._undistort(self.camera, pts, valid)
+        with self._stage("undistort"):
+            un = self._undistort(self.camera, pts, valid)
         dt = (t - s.prev_time).to(self.dtype).unsqueeze(-1).unsqueeze(-1)
-        moving = valid & (cnt >= 3) & ~is_new
-        vel = torch.where(moving.unsqueeze(-1), (un - un_prev) / torch.where(dt == 0, torch.ones_like(dt), dt),
+        # VINS divides by dt even when a duplicate stamp makes it 0 (inf/NaN velocities); here such
+        # a step reports zero velocity. The safe divisor keeps the unused lanes finite.
+        moving = (valid & (cnt >= 3) & ~is_new).unsqueeze(-1) & (dt != 0)
+        vel = torch.where(moving, (un - un_prev) / torch.where(dt == 0, torch.ones_like(dt), dt),
                           torch.zeros_like(un))
 
         # ids for the new features, in array order (updateID)
@@ -642,9 +703,9 @@ class FeatureTracker:
         un = self._undistort(self.camera, pts, valid)
         first_call = ~s.has_image
         dt = (t - s.prev_time).to(self.dtype).view(-1, 1, 1)
-        dt = torch.where(dt == 0, torch.ones_like(dt), dt)
-        moving = valid & (cnt >= 2) & ~first_call.unsqueeze(-1)
-        vel = torch.where(moving.unsqueeze(-1), (un - un_prev) / dt, torch.zeros_like(un))
+        moving = (valid & (cnt >= 2) & ~first_call.unsqueeze(-1)).unsqueeze(-1) & (dt != 0)
+        dt = torch.where(dt == 0, torch.ones_like(dt), dt)  # zero velocity on a duplicate stamp
+        vel = torch.where(moving, (un - un_prev) / dt, torch.zeros_like(un))
 
         right_uv = right_xy = right_vel = right_valid = None
         r_un_new = torch.zeros_like(un)

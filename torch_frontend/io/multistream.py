@@ -6,11 +6,10 @@ Convention:
     ``skip_bad``, has no readable frame left) is *dead*: it is fed its last image and its last
     timestamp again and ``alive[b]`` is False. Callers ignore a dead stream's tracker output.
 
-    Why "last image, last timestamp": ``FeatureTracker`` has no per-stream skip flag, and the
-    batch must keep B images. Repeating the last frame keeps the dead stream's inputs valid (same
-    size, finite, non-decreasing time: no restart), costs one stream's worth of work, and its
-    outputs are discarded. A tracker-side ``active (B,)`` argument would remove that work (see the
-    report of issue 8).
+    Why "last image, last timestamp": the batch must keep B images; repeating the last frame keeps
+    the dead stream's inputs valid (same size, finite, non-decreasing time). Pass ``alive`` as
+    ``FeatureTracker.track(..., active=alive)`` so that the tracker leaves a dead stream's state
+    untouched and reports nothing for it.
 
     Iteration stops when every stream has ended, or after ``max_steps`` steps.
 """

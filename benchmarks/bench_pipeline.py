@@ -1,0 +1,286 @@
+"""Full front end (FeatureTracker, mono mode, EuRoC config, 752×480) vs the OpenCV oracle pipeline.
+
+Both run in the same process on the same frames. For each row: milliseconds per stream-frame for
+torch-frontend (B streams in one tracker) and for OpenCV (a loop of B single-stream oracle trackers,
+``benchmarks/vins_oracle.py``), the ratio, peak memory, and torch's per-stage breakdown.
+
+Each configuration runs in its own subprocess so that peak RSS belongs to it alone, and torch and
+OpenCV get the same thread count (``torch.set_num_threads`` / ``cv2.setNumThreads``).
+
+Usage:
+    python benchmarks/bench_pipeline.py              # the standard table (B 1, 4, 16, 64; threads 1, 2)
+    python benchmarks/bench_pipeline.py --quick      # B 1 and 4, threads 1 (a smoke run)
+    python benchmarks/bench_pipeline.py --compile    # also torch.compile rows (slow to compile)
+
+Writes ``benchmarks/results/pipeline.json`` and ``benchmarks/results/pipeline.md`` (temp + rename),
+and a scaling plot ``benchmarks/results/pipeline_scaling.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+RESULTS = HERE / "results"
+SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
+
+TARGETS = {"cpu_b1": 1.5, "cpu_b8plus": 1.0, "gpu_b64_speedup": 50.0}
+
+
+def _frames():
+    import cv2
+
+    files = sorted(SAMPLE.glob("*.png"))
+    return [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files]
+
+
+def _stream_frames(frames, B, n_steps):
+    """Frame k of stream b: sample frame (k + 3 b) mod 24 walked forwards then backwards (a real,
+    slowly moving sequence per stream, different per stream)."""
+    n = len(frames)
+    period = 2 * (n - 1)
+    out = []
+    for k in range(n_steps):
+        row = []
+        for b in range(B):
+            i = (k + 3 * b) % period
+            row.append(frames[i if i < n else period - i])
+        out.append(row)
+    return out
+
+
+def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_meas: int, skip_cv: bool) -> dict:
+    """One configuration, in this process. Returns a dict of measurements."""
+    import resource
+
+    import cv2
+    import numpy as np
+    import torch
+
+    sys.path.insert(0, str(HERE))
+    import vins_oracle
+
+    import torch_frontend as tf
+
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(threads)
+    cfg = tf.load_config(REPO / "configs" / "euroc.yaml")
+    frames = _frames()
+    steps = _stream_frames(frames, B, n_warm + n_meas)
+    stamps = [1403715273.0 + 0.05 * k for k in range(n_warm + n_meas)]
+    dev = torch.device(device)
+    tr = tf.FeatureTracker(cfg, num_streams=B, device=dev)
+    if compiled:
+        tr.compile()
+    batches = [torch.from_numpy(np.stack(row))[:, None].to(dev) for row in steps]
+    sync = (lambda: torch.cuda.synchronize()) if dev.type == "cuda" else (lambda: None)
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    for k in range(n_warm):
+        tr.track(batches[k], [stamps[k]] * B)
+    sync()
+    tr.enable_stage_times()
+    t0 = time.perf_counter()
+    for k in range(n_warm, n_warm + n_meas):
+        tr.track(batches[k], [stamps[k]] * B)
+    sync()
+    t_torch = time.perf_counter() - t0
+    stages = {k: v / (n_meas * B) * 1e3 for k, v in (tr.stage_times or {}).items()}
+    res = {
+        "B": B, "threads": threads, "device": device, "compiled": compiled,
+        "torch_ms_per_stream_frame": t_torch / (n_meas * B) * 1e3,
+        "torch_ms_per_step": t_torch / n_meas * 1e3,
+        "stages_ms_per_stream_frame": stages,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    if dev.type == "cuda":
+        res["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
+    if not skip_cv:
+        cfg_cv = {
+            "max_cnt": cfg.max_cnt, "min_dist": cfg.min_dist, "freq": cfg.freq, "F_threshold": cfg.F_threshold,
+            "equalize": int(cfg.equalize), "fisheye": 0, "image_width": cfg.image_width,
+            "image_height": cfg.image_height,
+            "camera": {"model_type": cfg.camera.model_type, **cfg.camera.params_dict()},
+        }
+        orcs = [vins_oracle.OracleMonoTracker(cfg_cv) for _ in range(B)]
+        for k in range(n_warm):
+            for b in range(B):
+                orcs[b].process(steps[k][b], stamps[k])
+        t0 = time.perf_counter()
+        for k in range(n_warm, n_warm + n_meas):
+            for b in range(B):
+                orcs[b].process(steps[k][b], stamps[k])
+        t_cv = time.perf_counter() - t0
+        res["opencv_ms_per_stream_frame"] = t_cv / (n_meas * B) * 1e3
+        res["ratio"] = res["torch_ms_per_stream_frame"] / res["opencv_ms_per_stream_frame"]
+    return res
+
+
+def _target(row) -> str:
+    if "ratio" not in row:
+        return ""
+    if row["device"] == "cuda":
+        if row["B"] != 64:
+            return ""
+        ok = 1.0 / row["ratio"] >= TARGETS["gpu_b64_speedup"]
+        return f"{'met' if ok else 'missed'} (≥ {TARGETS['gpu_b64_speedup']:.0f}× OpenCV)"
+    if row["B"] == 1:
+        return f"{'met' if row['ratio'] <= TARGETS['cpu_b1'] else 'missed'} (≤ {TARGETS['cpu_b1']}×)"
+    if row["B"] >= 8:
+        return f"{'met' if row['ratio'] <= TARGETS['cpu_b8plus'] else 'missed'} (≤ {TARGETS['cpu_b8plus']}×)"
+    return "(no target)"
+
+
+def markdown(rows, machine: str) -> str:
+    lines = [
+        f"Machine: {machine}",
+        "",
+        "| device | B | threads | mode | torch ms/stream-frame | OpenCV ms/stream-frame | ratio | target | peak RSS MiB |"
+        " stages ms/stream-frame (clahe, pyramid, lk, ransac, mask, detection, undistort) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['device']} | {r['B']} | {r['threads']} | {'compile' if r['compiled'] else 'eager'} |"
+                         f" failed: {r['error']} | | | | | |")
+            continue
+        st = r["stages_ms_per_stream_frame"]
+        stages = ", ".join(f"{st.get(k, 0.0):.1f}" for k in
+                           ("clahe", "pyramid", "lk", "ransac", "mask", "detection", "undistort"))
+        cv = f"{r['opencv_ms_per_stream_frame']:.2f}" if "opencv_ms_per_stream_frame" in r else "-"
+        ratio = f"{r['ratio']:.2f}" if "ratio" in r else "-"
+        lines.append(
+            f"| {r['device']} | {r['B']} | {r['threads']} | {'compile' if r['compiled'] else 'eager'} | "
+            f"{r['torch_ms_per_stream_frame']:.2f} | {cv} | {ratio} | {_target(r)} | {r['peak_rss_mib']:.0f} | {stages} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+    os.replace(tmp, path)
+
+
+def plot(rows, path: Path) -> None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover
+        return
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for dev in sorted({r["device"] for r in rows}):
+        for th in sorted({r["threads"] for r in rows}):
+            sel = [r for r in rows if r["device"] == dev and r["threads"] == th and not r["compiled"] and "error" not in r]
+            if not sel:
+                continue
+            ax.plot([r["B"] for r in sel], [r["torch_ms_per_stream_frame"] for r in sel], "o-",
+                    label=f"torch-frontend {dev}, {th} thr")
+            cvs = [r for r in sel if "opencv_ms_per_stream_frame" in r]
+            if cvs and dev == "cpu":
+                ax.plot([r["B"] for r in cvs], [r["opencv_ms_per_stream_frame"] for r in cvs], "s--",
+                        label=f"OpenCV loop, {th} thr")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("streams B")
+    ax.set_ylabel("ms per stream-frame")
+    ax.set_title("VINS front end: time per stream-frame vs batch size")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
+    os.close(fd)
+    fig.savefig(tmp, dpi=110)
+    os.replace(tmp, path)
+
+
+def machine_description() -> str:
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = f", GPU {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""
+    return f"{cpu}, {os.cpu_count()} cores{gpu}; torch {torch.__version__}, Python {platform.python_version()}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="B 1 and 4, 1 thread only")
+    ap.add_argument("--compile", action="store_true", help="add torch.compile rows")
+    ap.add_argument("--batches", type=int, nargs="*", default=None)
+    ap.add_argument("--threads", type=int, nargs="*", default=None)
+    ap.add_argument("--device", nargs="*", default=None)
+    ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)  # internal: run one config
+    args = ap.parse_args(argv)
+
+    if args.one:
+        spec = json.loads(args.one)
+        try:
+            res = run_one(**spec)
+        except Exception as exc:  # reported in the table, not fatal for the whole benchmark
+            res = {**{k: spec[k] for k in ("B", "threads", "device", "compiled")}, "error": f"{type(exc).__name__}: {exc}"}
+        print("RESULT " + json.dumps(res))
+        return 0
+
+    import torch
+
+    batches = args.batches or ([1, 4] if args.quick else [1, 4, 16, 64])
+    threads = args.threads or ([1] if args.quick else [1, 2])
+    devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
+    modes = [False, True] if args.compile else [False]
+    rows = []
+    for dev in devices:
+        for th in threads if dev == "cpu" else [threads[0]]:
+            for compiled in modes:
+                for B in batches:
+                    n_meas = max(2, min(8, 64 // B)) if dev == "cpu" else 8
+                    spec = dict(B=B, threads=th, device=dev, compiled=compiled, n_warm=4, n_meas=n_meas,
+                                skip_cv=(dev != "cpu" and B not in (1, 64)))
+                    t0 = time.time()
+                    out = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)],
+                                         capture_output=True, text=True, timeout=900)
+                    line = [x for x in out.stdout.splitlines() if x.startswith("RESULT ")]
+                    if not line:
+                        res = {**{k: spec[k] for k in ("B", "threads", "device", "compiled")},
+                               "error": (out.stderr.strip().splitlines() or ["no output"])[-1]}
+                    else:
+                        res = json.loads(line[-1][7:])
+                    rows.append(res)
+                    print(f"  {dev} B={B} threads={th} {'compile' if compiled else 'eager'}: "
+                          + (res.get("error") or f"{res['torch_ms_per_stream_frame']:.2f} ms/stream-frame"
+                             + (f", OpenCV {res['opencv_ms_per_stream_frame']:.2f}, ratio {res['ratio']:.2f}"
+                                if "ratio" in res else ""))
+                          + f"  [{time.time() - t0:.0f} s]", flush=True)
+    machine = machine_description()
+    md = markdown(rows, machine)
+    print()
+    print(md)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    _atomic_write(RESULTS / "pipeline.json", json.dumps({"machine": machine, "targets": TARGETS, "rows": rows},
+                                                        indent=2).encode())
+    _atomic_write(RESULTS / "pipeline.md", md.encode())
+    plot(rows, RESULTS / "pipeline_scaling.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
