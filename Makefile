@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(VPY) -m pytest -q
 
 bench: $(STAMP)
-	$(VPY) benchmarks/bench_all.py
+	$(VPY) benchmarks/bench_pipeline.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
