@@ -490,24 +490,46 @@ class FeatureTracker:
         from .masks import distance_mask
 
         B, K = valid.shape
+        dev = valid.device
+        order = torch.arange(K, device=dev).expand(B, K).clone()
+        # Only the detecting streams pay for setMask and GFTT (mono: the published ones, about one
+        # frame in two at 20 Hz with freq 10). One host sync per frame picks them.
+        sel = do_detect.nonzero().flatten()
+        n_sel = int(sel.numel())
+        if n_sel == 0:
+            empty = torch.zeros(B, 0, 2, device=dev, dtype=pts.dtype)
+            return order, valid, valid.sum(1), empty, torch.zeros(B, 0, device=dev, dtype=torch.bool)
+        every = n_sel == B
+        pick = (lambda x: x) if every else (lambda x: x.index_select(0, sel))  # noqa: E731
+        v_sub, c_sub = pick(valid), pick(track_cnt)
         # setMask: visit by descending track count, ties by index (stable sort; VINS's std::sort is
         # unstable, see the spec §3.7 — a deterministic, documented difference).
-        key = torch.where(valid, track_cnt, torch.full_like(track_cnt, -1))
-        order = torch.sort(-key, dim=1, stable=True).indices
-        order = torch.where(do_detect.unsqueeze(-1), order, torch.arange(K, device=order.device).expand(B, K))
-        pts_s, valid_s, cnt_s = _gather(pts, order), _gather(valid, order), _gather(track_cnt, order)
+        key = torch.where(v_sub, c_sub, torch.full_like(c_sub, -1))
+        o_sub = torch.sort(-key, dim=1, stable=True).indices
+        pts_s, valid_s, cnt_s = _gather(pick(pts), o_sub), _gather(v_sub, o_sub), _gather(c_sub, o_sub)
         with self._stage("mask"):
             keep, mask = distance_mask(
-                pts_s, cnt_s, valid_s & do_detect.unsqueeze(-1), self.config.min_dist,
+                pts_s, cnt_s, valid_s, self.config.min_dist,
                 base_mask=base_mask, height=self.height, width=self.width,
             )
-        valid_s = torch.where(do_detect.unsqueeze(-1), valid_s & keep, valid_s)
-        n_keep = valid_s.sum(1)
-        n_max = torch.where(do_detect, self.K - n_keep, torch.zeros_like(n_keep))
+        valid_s = valid_s & keep
+        n_max = self.K - valid_s.sum(1)
         with self._stage("detection"):
-            new_pts, new_valid = good_features_to_track(
-                img_u8, n_max, quality_level=0.01, min_distance=self.config.min_dist, mask=mask
+            p_sub, nv_sub = good_features_to_track(
+                pick(img_u8), n_max, quality_level=0.01, min_distance=self.config.min_dist, mask=mask
             )
+        if every:
+            order, new_pts, new_valid = o_sub, p_sub, nv_sub
+        else:
+            order[sel] = o_sub
+            valid_s_full = valid.clone()
+            valid_s_full[sel] = valid_s
+            valid_s = valid_s_full
+            new_pts = torch.zeros(B, p_sub.shape[1], 2, device=dev, dtype=p_sub.dtype)
+            new_valid = torch.zeros(B, p_sub.shape[1], device=dev, dtype=torch.bool)
+            new_pts[sel] = p_sub
+            new_valid[sel] = nv_sub
+        n_keep = valid_s.sum(1)
         return order, valid_s, n_keep, new_pts, new_valid
 
     def _track_common(self, img, t, active, publish):
