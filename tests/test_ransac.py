@@ -437,3 +437,56 @@ def test_refit_gradcheck():
     p2 = torch.tensor(c[None], dtype=torch.float64, requires_grad=True)
     w = torch.rand(1, 12, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).add(0.5).requires_grad_(True)
     assert torch.autograd.gradcheck(refit_fundamental, (p1, p2, w), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+def _reference_subsets(state: int, n: int, num: int) -> np.ndarray:
+    """OpenCV ``getSubset`` with ``cv::RNG(state)``, written out sequentially (the oracle of the
+    vectorised, lazily grown sample tables)."""
+    s, out = state, []
+    while len(out) < num:
+        cur: list = []
+        while len(cur) < 7:
+            s = (s & 0xFFFFFFFF) * 4164903690 + (s >> 32)
+            v = (s & 0xFFFFFFFF) % n
+            if v not in cur:
+                cur.append(v)
+        out.append(cur)
+    return np.array(out, dtype=np.int64)
+
+
+def test_sample_tables_match_sequential_rng():
+    """The vectorised sample stream (jump-ahead lanes, all subset starts at once, lazy growth in
+    pieces, process-wide cache) equals the sequential cv::RNG / getSubset rule, also for tiny n
+    (many redraws) and for seeds above the multiply-with-carry modulus such as OpenCV's (uint64)-1."""
+    from torch_frontend import ransac as R
+
+    R._SUBSET_CACHE.clear()
+    R._RAW_CACHE.clear()
+    for seed in (-1, 1, 12345, -5 + 7919 * 63, 2**63 - 1, -(2**63)):
+        state = R._state_of(seed)
+        for n in (8, 9, 11, 14, 15, 16, 40, 149, 150, 151, 2000):
+            ref = _reference_subsets(state, n, 300)
+            stream = R._subset_stream(state, n)
+            for upto in (5, 37, 38, 120, 300):  # grown in pieces, as rounds ask for them
+                assert np.array_equal(stream.upto(upto)[:upto], ref[:upto]), (seed, n, upto)
+            assert torch.equal(R._opencv_samples(state, n, 300), torch.from_numpy(ref))
+
+
+def test_tracker_like_calls_match_opencv():
+    """Consecutive calls as the FeatureTracker makes them (float32, N = 150 slots, 140..150 valid,
+    seed 0, a new n almost every call): every mask equals cv2's."""
+    rng = np.random.default_rng(17)
+    scenes = _synthetic_scenes(k=6, n=150, noise=0.3, seed=12)
+    for i, (a, c) in enumerate(scenes):
+        c, _ = _plant(a, c, 0.1, rng)
+        n = int(rng.integers(140, 151))
+        p1 = torch.full((1, 150, 2), float("nan"))
+        p2 = p1.clone()
+        p1[0, :n] = torch.from_numpy(a[:n]).float()
+        p2[0, :n] = torch.from_numpy(c[:n]).float()
+        valid = torch.zeros(1, 150, dtype=torch.bool)
+        valid[0, :n] = True
+        res = find_fundamental(p1, p2, valid, threshold=1.0, confidence=0.99, seed=0)
+        assert bool(res.ok[0]) and not res.inliers[0, n:].any()
+        cvm = _cv_mask(a[:n].astype(np.float32), c[:n].astype(np.float32))
+        assert np.array_equal(res.inliers[0, :n].numpy(), cvm), i

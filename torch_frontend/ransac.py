@@ -3,10 +3,11 @@ differentiable weighted 8-point refit.
 
 VINS-Mono's ``rejectWithF`` (spec §3.8, §5.4) lifts every track into a 460-px virtual pinhole and
 calls ``cv2.findFundamentalMat(un_cur, un_forw, FM_RANSAC, F_threshold, 0.99)``. This module solves B
-such problems together: every round takes up to ``batch_hypotheses`` minimal samples per problem,
-solves them with a batched 7-point solver, scores every candidate on every point in parallel and
-then replays OpenCV's sequential bookkeeping on the round (first strictly better model, adaptive
-iteration bound after every sample, exact stopping sample), so the inlier masks are OpenCV's.
+such problems together: every round takes a block of minimal samples per problem (32, 64, 128, ...,
+never more than the current iteration bound allows), solves them with a batched 7-point solver,
+scores every candidate on every point in parallel and then replays OpenCV's sequential bookkeeping
+on the round (first strictly better model, adaptive iteration bound after every sample, exact
+stopping sample), so the inlier masks are OpenCV's.
 
 Convention:
     * ``p1, p2: (B, N, 2)`` float, pixels ``(x, y)`` of the virtual pinhole; ``valid: (B, N)`` bool.
@@ -26,16 +27,25 @@ order (``next() % n_b``, repeated indices redrawn). The default seed is OpenCV's
 (``(uint64)-1``, re-seeded on every call), which is why the masks equal cv2's. The sample stream
 depends only on (seed_b, n_b): nothing depends on b, B, N, the padding layout, the round size or the
 other problems, so a problem gets the same result in any batch as in a single call with the same
-seed. The index tables are built on the host once per (seed, n) and cached.
+seed. The index tables are generated on the host lazily (only as many samples as the rounds reach),
+vectorised (numpy: jump-ahead lanes for the multiply-with-carry stream, all candidate subset starts
+at once for the redraw rule) and cached process-wide per (seed, n) in a small LRU, so a tracker whose
+point count changes every frame pays ~0.1-1 ms once per new n instead of rebuilding 1000 samples.
+
+Performance notes (CPU, see ``benchmarks/bench_ransac.py``): small problems are bound by the number
+of torch ops per round, so the first round is small (32 samples: with few outliers OpenCV stops
+within it), both images share one gather / normalisation in the 7-point solver, and a problem's
+final mask is the one its best model was counted with (no re-scoring pass). Large batches are bound
+by scoring (float64, exact as OpenCV's double arithmetic).
 """
 
 from __future__ import annotations
 
 import collections
-import functools
 import math
 from typing import NamedTuple, Sequence, Union
 
+import numpy as np
 import torch
 
 from ._checks import check_points, check_shape, default_valid
@@ -91,51 +101,179 @@ class FundamentalResult(_FundamentalPair):
 
 
 # ----------------------------------------------------------------------------------------------
-# OpenCV's random sample stream (cv::RNG, multiply-with-carry), tabulated on the host and cached
+# OpenCV's random sample stream (cv::RNG, multiply-with-carry), generated lazily on the host and
+# cached process-wide per (state, n)
 # ----------------------------------------------------------------------------------------------
 _U32 = 0xFFFFFFFF
 _U64 = 0xFFFFFFFFFFFFFFFF
+_MWC_A = 4164903690
 OPENCV_SEED = -1  # cv::RNG((uint64)-1), the state OpenCV's RANSAC/LMedS re-seed with on every call
-_RAW_CACHE: collections.OrderedDict = collections.OrderedDict()  # state -> (outputs, state after them)
+_RAW_CACHE: collections.OrderedDict = collections.OrderedDict()  # state -> _RawStream
 _RAW_CACHE_STATES = 16  # LRU bound: a fresh generator seed per call must not grow memory forever
+_SUBSET_CACHE: collections.OrderedDict = collections.OrderedDict()  # (state, n) -> _SubsetStream
+_SUBSET_CACHE_SIZE = 512  # <= 512 x (1000, 7) int32 = 14 MB; the tracker needs one entry per n
 
 
-def _rng_raw(state: int, count: int) -> list:
-    """First ``count`` outputs of ``cv::RNG(state).next()``: ``state = lo32(state) * 4164903690 +
-    hi32(state)``, output ``lo32(state)``."""
-    vals, s = _RAW_CACHE.get(state, ([], state))
-    if len(vals) < count:
-        vals = list(vals)
-        for _ in range(count - len(vals)):
-            s = (s & _U32) * 4164903690 + (s >> 32)
-            vals.append(s & _U32)
-    _RAW_CACHE[state] = (vals, s)
-    _RAW_CACHE.move_to_end(state)
-    while len(_RAW_CACHE) > _RAW_CACHE_STATES:
-        _RAW_CACHE.popitem(last=False)
-    return vals
+_MWC_M = _MWC_A * 2**32 - 1
+_MWC_BINV = pow(2**32, -1, _MWC_M)
 
 
-@functools.lru_cache(maxsize=256)  # (num, 7) int64 each: <= 14 MB for num = 1000
-def _opencv_samples(state: int, n: int, num: int) -> torch.Tensor:
-    """The first ``num`` 7-point index subsets OpenCV's ``getSubset`` draws for ``n`` points with
-    ``cv::RNG(state)``: ``rng.uniform(0, n) = next() % n``, redrawn while it repeats an index of
-    the subset. (OpenCV also redraws a subset whose last point is collinear with two others; here
-    such a subset is kept and marked degenerate instead, see ``_collinear_last``.) ``(num, 7)`` int64."""
-    raw = _rng_raw(state, 8 * num + 64)
-    out = []
-    pos = 0
-    while len(out) < num:
+class _RawStream:
+    """Outputs of ``cv::RNG(state).next()`` (``state = lo32(state) * 4164903690 + hi32(state)``,
+    output ``lo32(state)``), grown on demand.
+
+    The recurrence is sequential, but it is a multiply-with-carry generator: with ``m = a 2^32 - 1``
+    every state below m satisfies ``next(s) = s 2^-32 mod m`` (``2^32 next(s) = m lo32(s) + s``). So
+    the stream is cut into lanes whose start states are jumped to with one modular power each
+    (Python ints) and the lanes are stepped together in numpy uint64 (no overflow: s < m < 2^64)."""
+
+    __slots__ = ("vals", "s")
+
+    def __init__(self, state: int):
+        self.vals = np.zeros(0, dtype=np.int64)
+        self.s = state
+
+    def upto(self, count: int) -> np.ndarray:
+        have = self.vals.size
+        if have >= count:
+            return self.vals
+        count = max(count, 2 * have, 256)
+        s, head = self.s, []
+        while s >= _MWC_M and have + len(head) < count:  # a seed above m: step until below it
+            s = (s & _U32) * _MWC_A + (s >> 32)
+            head.append(s & _U32)
+        todo = count - have - len(head)
+        lanes = -(-todo // 64) if todo > 0 else 0
+        parts = [np.asarray(head, dtype=np.int64)]
+        if lanes:
+            T = -(-todo // lanes)
+            jump = pow(_MWC_BINV, T, _MWC_M)
+            starts = []
+            for _ in range(lanes):
+                starts.append(s)
+                s = s * jump % _MWC_M
+            S = np.asarray(starts, dtype=np.uint64)
+            out = np.empty((lanes, T), dtype=np.uint64)
+            lo, mul, sh = np.uint64(_U32), np.uint64(_MWC_A), np.uint64(32)
+            for t in range(T):
+                S = (S & lo) * mul + (S >> sh)
+                out[:, t] = S
+            parts.append((out & lo).astype(np.int64).reshape(-1))
+            # s is now the state after lanes * T draws (>= todo)
+        self.s = s
+        self.vals = np.concatenate([self.vals, *parts])
+        return self.vals
+
+
+def _raw_stream(state: int) -> _RawStream:
+    st = _RAW_CACHE.get(state)
+    if st is None:
+        st = _RAW_CACHE[state] = _RawStream(state)
+        while len(_RAW_CACHE) > _RAW_CACHE_STATES:
+            _RAW_CACHE.popitem(last=False)
+    else:
+        _RAW_CACHE.move_to_end(state)
+    return st
+
+
+class _SubsetStream:
+    """The 7-point index subsets OpenCV's ``getSubset`` draws for ``n`` points with ``cv::RNG(state)``:
+    ``rng.uniform(0, n) = next() % n``, redrawn while it repeats an index of the subset. (OpenCV also
+    redraws a subset whose last point is collinear with two others; here such a subset is kept and
+    marked degenerate instead, see ``_collinear_last``.) Generated lazily, as many as asked for.
+
+    Vectorised: the subset that starts at stream position p (and the position after it) depends only
+    on p, not on what came before, so it is computed for every p of a block at once (draw j is
+    redrawn iff the previous occurrence of its value lies at or after p); then the chain
+    0 -> end(0) -> end(end(0)) ... picks OpenCV's subsets (a cheap host loop over samples)."""
+
+    __slots__ = ("raw", "n", "table", "count", "pos")
+
+    def __init__(self, state: int, n: int):
+        self.raw = _raw_stream(state)
+        self.n = n
+        self.table = np.zeros((0, _MODEL_POINTS), dtype=np.int32)
+        self.count = 0
+        self.pos = 0  # stream position of the next subset
+
+    def _slow(self, p: int):
+        """One subset from position p by the sequential rule (rare: windows with many redraws)."""
         cur: list = []
         while len(cur) < _MODEL_POINTS:
-            if pos >= len(raw):
-                raw = _rng_raw(state, 2 * len(raw))
-            v = raw[pos] % n
-            pos += 1
+            v = int(self.raw.upto(p + 64)[p]) % self.n
+            p += 1
             if v not in cur:
                 cur.append(v)
-        out.append(cur)
-    return torch.tensor(out, dtype=torch.int64).view(num, _MODEL_POINTS)
+        return cur, p
+
+    def upto(self, count: int) -> np.ndarray:
+        if self.count >= count:
+            return self.table
+        need = count - self.count
+        if self.count == 0 or need < self.count:  # grow geometrically: few extensions per stream
+            need = max(need, self.count, 16)
+        n = self.n
+        # expected draws per subset: sum_i n / (n - i), i < 7; 8 (+ margin) for n >= 50
+        per = sum(n / (n - i) for i in range(_MODEL_POINTS)) if n > _MODEL_POINTS else 64.0
+        W = _MODEL_POINTS + max(8, int(4 * (per - _MODEL_POINTS)) + 4)  # window of draws per start
+        out = np.empty((need, _MODEL_POINTS), dtype=np.int32)
+        k, p0 = 0, self.pos
+        while k < need:
+            P = int((need - k) * per * 1.2) + 16  # candidate start positions in this block
+            v = self.raw.upto(p0 + P + W)[p0 : p0 + P + W] % n
+            L = v.size
+            # prev[q]: previous position of the same value in the block (-1 if none)
+            order = np.argsort(v, kind="stable")
+            sv = v[order]
+            prev = np.full(L, -1, dtype=np.int64)
+            same = sv[1:] == sv[:-1]
+            prev[order[1:][same]] = order[:-1][same]
+            starts = np.arange(P)
+            idx = starts[:, None] + np.arange(W)[None, :]  # (P, W)
+            acc = prev[idx] < starts[:, None]  # not a repeat of a draw of this subset
+            cs = np.cumsum(acc, axis=1, dtype=np.int16)
+            complete = cs[:, -1] >= _MODEL_POINTS
+            end = (cs >= _MODEL_POINTS).argmax(axis=1) + 1
+            take = acc & (cs <= _MODEL_POINTS)
+            rowpos = np.cumsum(complete) - 1  # row of each complete start in `subs`
+            subs = v[idx][take & complete[:, None]].reshape(-1, _MODEL_POINTS)
+            end_l, comp_l, row_l = end.tolist(), complete.tolist(), rowpos.tolist()
+            p, k0, rows, slow = 0, k, [], []
+            while k < need and p < P:
+                if comp_l[p]:
+                    rows.append(row_l[p])
+                    p += end_l[p]
+                else:
+                    cur, q = self._slow(p0 + p)
+                    rows.append(0)
+                    slow.append((k, cur))
+                    p = q - p0
+                k += 1
+            out[k0:k] = subs[rows] if rows else 0
+            for j, cur in slow:
+                out[j] = cur
+            p0 += p
+        self.pos = p0
+        self.table = np.concatenate([self.table, out])
+        self.count += need
+        return self.table
+
+
+def _subset_stream(state: int, n: int) -> _SubsetStream:
+    key = (state, n)
+    st = _SUBSET_CACHE.get(key)
+    if st is None:
+        st = _SUBSET_CACHE[key] = _SubsetStream(state, n)
+        while len(_SUBSET_CACHE) > _SUBSET_CACHE_SIZE:
+            _SUBSET_CACHE.popitem(last=False)
+    else:
+        _SUBSET_CACHE.move_to_end(key)
+    return st
+
+
+def _opencv_samples(state: int, n: int, num: int) -> torch.Tensor:
+    """The first ``num`` subsets of :class:`_SubsetStream` ``(state, n)`` as ``(num, 7)`` int64."""
+    return torch.from_numpy(_subset_stream(state, n).upto(num)[:num].astype(np.int64))
 
 
 def _state_of(seed: int) -> int:
@@ -189,42 +327,50 @@ def _solve_cubic(c: torch.Tensor):
     # three real roots (disc <= 0): trigonometric
     mneg = (-P / 3.0).clamp_min(0.0)
     m = 2.0 * torch.sqrt(mneg)
-    den = torch.where(mneg > 0, P * m, -one)
-    arg = torch.where(mneg > 0, (3.0 * Q / den).clamp(-1.0, 1.0), torch.zeros_like(Q))
+    pos = mneg > 0
+    den = torch.where(pos, P * m, -one)
+    arg = torch.where(pos, (3.0 * Q / den).clamp(-1.0, 1.0), torch.zeros_like(Q))
     theta = torch.acos(arg) / 3.0
-    k = torch.arange(3, device=c.device, dtype=c.dtype)
-    t3 = m[..., None] * torch.cos(theta[..., None] - 2.0 * math.pi * k / 3.0)
-    one_root = disc > 0
-    cub_roots = torch.where(one_root[..., None], torch.stack([t1, t1, t1], -1), t3) - (p / 3.0)[..., None]
-    cub_ok = torch.stack([torch.ones_like(one_root), ~one_root, ~one_root], -1)
-    # quadratic / linear fallback (OpenCV solveCubic handles a == 0 the same way)
-    is_quad = b.abs() > 1e-12
-    b_s = torch.where(is_quad, b, one)
-    qd = cc * cc - 4.0 * b * d
-    sqd = torch.sqrt(qd.clamp_min(0.0))
-    qr = torch.stack([(-cc + sqd) / (2.0 * b_s), (-cc - sqd) / (2.0 * b_s)], -1)
-    c_s = torch.where(cc.abs() > 1e-12, cc, one)
-    lin = -d / c_s
-    quad_roots = torch.where(is_quad[..., None], qr, torch.stack([lin, lin], -1))
-    quad_ok = torch.where(
-        is_quad[..., None],
-        (qd >= 0)[..., None].expand_as(qr),
-        torch.stack([cc.abs() > 1e-12, torch.zeros_like(is_quad)], -1),
-    )
-    quad_roots = torch.cat([quad_roots, torch.zeros_like(quad_roots[..., :1])], -1)
-    quad_ok = torch.cat([quad_ok, torch.zeros_like(quad_ok[..., :1])], -1)
-    roots = torch.where(is_cubic[..., None], cub_roots, quad_roots)
-    ok = torch.where(is_cubic[..., None], cub_ok, quad_ok)
+    t3 = m[..., None] * torch.cos(theta[..., None] - _CUBIC_PHASES.to(c.device, c.dtype))
+    one_root = (disc > 0)[..., None]
+    roots = torch.where(one_root, t1[..., None], t3) - (p / 3.0)[..., None]
+    ok = torch.cat([torch.ones_like(one_root), ~one_root, ~one_root], -1)
+    # quadratic / linear fallback (OpenCV solveCubic handles a == 0 the same way); on the CPU it is
+    # skipped when no lane needs it (a free check there; elsewhere it would be a host sync)
+    if c.device.type != "cpu" or not bool(is_cubic.all()):
+        is_quad = b.abs() > 1e-12
+        b_s = torch.where(is_quad, b, one)
+        qd = cc * cc - 4.0 * b * d
+        sqd = torch.sqrt(qd.clamp_min(0.0))
+        qr = torch.stack([(-cc + sqd) / (2.0 * b_s), (-cc - sqd) / (2.0 * b_s)], -1)
+        c_s = torch.where(cc.abs() > 1e-12, cc, one)
+        lin = -d / c_s
+        quad_roots = torch.where(is_quad[..., None], qr, torch.stack([lin, lin], -1))
+        quad_ok = torch.where(
+            is_quad[..., None],
+            (qd >= 0)[..., None].expand_as(qr),
+            torch.stack([cc.abs() > 1e-12, torch.zeros_like(is_quad)], -1),
+        )
+        quad_roots = torch.cat([quad_roots, torch.zeros_like(quad_roots[..., :1])], -1)
+        quad_ok = torch.cat([quad_ok, torch.zeros_like(quad_ok[..., :1])], -1)
+        roots = torch.where(is_cubic[..., None], roots, quad_roots)
+        ok = torch.where(is_cubic[..., None], ok, quad_ok)
     # Newton polish (guards against cancellation when |a| is small but above the cut-off)
     A, Bq, C, D = (t[..., None] for t in (a, b, cc, d))
+    A3, B2 = 3.0 * A, 2.0 * Bq
     for _ in range(2):
         f = ((A * roots + Bq) * roots + C) * roots + D
-        fp = (3.0 * A * roots + 2.0 * Bq) * roots + C
-        step = torch.where(fp.abs() > 1e-300, f / torch.where(fp.abs() > 1e-300, fp, torch.ones_like(fp)), torch.zeros_like(f))
+        fp = (A3 * roots + B2) * roots + C
+        big = fp.abs() > 1e-300
+        step = torch.where(big, f / torch.where(big, fp, torch.ones_like(fp)), torch.zeros_like(f))
         new = roots - step
         roots = torch.where(torch.isfinite(new) & (step.abs() < 1e3 * (1.0 + roots.abs())), new, roots)
     ok = ok & torch.isfinite(roots)
     return torch.where(ok, roots, torch.zeros_like(roots)), ok
+
+
+_CUBIC_PHASES = 2.0 * math.pi * torch.arange(3, dtype=torch.float64) / 3.0
+_PAIRS_CACHE: dict = {}
 
 
 def _cofactor(M: torch.Tensor) -> torch.Tensor:
@@ -241,34 +387,37 @@ def _epipolar_rows(x0, y0, x1, y1):
 
 def _collinear_last(m: torch.Tensor) -> torch.Tensor:
     """OpenCV ``haveCollinearPoints`` for a full 7-point subset: is the last point on a line through
-    two earlier ones (or too close to one)? ``m: (..., 7, 2)`` -> ``(...)`` bool."""
-    d = m[..., :-1, :] - m[..., -1:, :]  # (..., 6, 2)
-    j, k = torch.tril_indices(6, 6, offset=-1, device=m.device)  # pairs k < j
-    d1, d2 = d[..., j, :], d[..., k, :]
+    two earlier ones (or too close to one)? ``m: (M, 7, ..., 2)`` -> ``(M, ...)`` bool."""
+    d = m[:, :-1] - m[:, -1:]  # (M, 6, ..., 2)
+    key = str(m.device)
+    if key not in _PAIRS_CACHE:  # pairs k < j of the six difference vectors
+        _PAIRS_CACHE[key] = torch.tril_indices(6, 6, offset=-1, device=m.device)
+    j, k = _PAIRS_CACHE[key]
+    d1, d2 = d[:, j], d[:, k]
     cross = d2[..., 0] * d1[..., 1] - d2[..., 1] * d1[..., 0]
     tol = _FLT_EPSILON * (d1.abs().sum(-1) + d2.abs().sum(-1))
-    return (cross.abs() <= tol).any(-1)
+    return (cross.abs() <= tol).any(1)
 
 
-def _run_7point(m1: torch.Tensor, m2: torch.Tensor):
-    """Batched OpenCV ``run7Point``. ``m1, m2: (M, 7, 2)`` float64 -> ``F (M, 3, 3, 3)`` (up to three
-    solutions, unit Frobenius norm) and ``ok (M, 3)``.
+def _run_7point(m: torch.Tensor):
+    """Batched OpenCV ``run7Point``. ``m: (M, 7, 2, 2)`` float64 (sample point, image, x/y) -> ``F (M,
+    3, 3, 3)`` (up to three solutions, unit Frobenius norm), ``ok (M, 3)`` and ``degenerate (M,)``
+    (OpenCV's collinearity check of the last sample point, in either image).
 
     Like OpenCV: Hartley-style normalisation (centroid, mean distance sqrt(2)), the two-dimensional
     null space of the 7x9 system (here from a complete QR of its transpose: the last two columns of
     Q, which is much faster than a batched SVD and equally stable for a rank-7 system), the real
-    roots of det(a*F1 + (1 - a)*F2) = 0, then de-normalisation.
+    roots of det(a*F1 + (1 - a)*F2) = 0, then de-normalisation. Both images are handled in one
+    tensor (half the small ops).
     """
-    c1 = m1.mean(-2, keepdim=True)
-    c2 = m2.mean(-2, keepdim=True)
-    s1 = (m1 - c1).norm(dim=-1).mean(-1)
-    s2 = (m2 - c2).norm(dim=-1).mean(-1)
-    good = (s1 >= _FLT_EPSILON) & (s2 >= _FLT_EPSILON)
-    s1 = math.sqrt(2.0) / torch.where(good, s1, torch.ones_like(s1))
-    s2 = math.sqrt(2.0) / torch.where(good, s2, torch.ones_like(s2))
-    n1 = (m1 - c1) * s1[:, None, None]
-    n2 = (m2 - c2) * s2[:, None, None]
-    A = _epipolar_rows(n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1])  # (M, 7, 9)
+    degenerate = _collinear_last(m).any(-1)
+    c = m.mean(1, keepdim=True)  # (M, 1, 2, 2)
+    dm = m - c
+    s = dm.norm(dim=-1).mean(1)  # (M, 2)
+    good = (s >= _FLT_EPSILON).all(-1)
+    s = math.sqrt(2.0) / torch.where(good[:, None], s, torch.ones_like(s))
+    nm = dm * s[:, None, :, None]
+    A = _epipolar_rows(nm[..., 0, 0], nm[..., 0, 1], nm[..., 1, 0], nm[..., 1, 1])  # (M, 7, 9)
     Qm = torch.linalg.qr(A.transpose(-1, -2), mode="complete").Q  # (M, 9, 9)
     f1 = Qm[..., :, 7]
     f2 = Qm[..., :, 8]
@@ -288,37 +437,31 @@ def _run_7point(m1: torch.Tensor, m2: torch.Tensor):
     roots, rok = _solve_cubic(coeffs)  # (M, 3)
     Fn = roots[..., None, None] * Fa[:, None] + Fb[:, None]  # (M, 3, 3, 3)
     # de-normalise: F = T2^T Fn T1, T = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]]
-    zero = torch.zeros_like(s1)
-    onev = torch.ones_like(s1)
-
-    def _T(s, c):
-        return torch.stack(
-            [
-                torch.stack([s, zero, -s * c[:, 0, 0]], -1),
-                torch.stack([zero, s, -s * c[:, 0, 1]], -1),
-                torch.stack([zero, zero, onev], -1),
-            ],
-            -2,
-        )
-
-    T1 = _T(s1, c1)[:, None]
-    T2 = _T(s2, c2)[:, None]
-    F = T2.transpose(-1, -2) @ Fn @ T1
+    zero = torch.zeros_like(s)
+    sc = -s[..., None] * c[:, 0]  # (M, 2, 2): -s * (cx, cy) per image
+    T = torch.stack([s, zero, sc[..., 0], zero, s, sc[..., 1], zero, zero, torch.ones_like(s)], -1)
+    T = T.view(-1, 2, 3, 3)
+    F = T[:, None, 1].transpose(-1, -2) @ Fn @ T[:, None, 0]
     nrm = F.flatten(-2).norm(dim=-1)
     fok = rok & good[:, None] & (nrm > 0) & torch.isfinite(nrm)
     F = F / torch.where(fok, nrm, torch.ones_like(nrm))[..., None, None]
     F = torch.where(fok[..., None, None], F, torch.zeros_like(F))
-    return F, fok
+    return F, fok, degenerate
 
 
-def _epipolar_terms(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor):
+def _homogeneous(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``(B, N, 2)`` points (zero at masked-out slots) -> ``(B, N, 3)`` homogeneous points, with
+    ``(0, 0, 0)`` at masked-out slots: their epipolar lines are degenerate (``s = 0``), so they never
+    count as inliers and have infinite error, without a mask op on the ``(B, N, K)`` score tensors."""
+    return torch.cat([x, valid[..., None].to(x.dtype)], -1)
+
+
+def _epipolar_terms(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor):
     """Algebraic residual and line norms for K models on N points, as three batched matmuls.
 
-    ``F: (B, K, 3, 3)``, ``x1, x2: (B, N, 2)`` -> ``d2 = (x2^T F x1)^2``, ``s2 = |(F x1)_xy|^2`` and
-    ``s1 = |(F^T x2)_xy|^2``, each ``(B, N, K)``."""
+    ``F: (B, K, 3, 3)``, ``h1, h2: (B, N, 3)`` (see ``_homogeneous``) -> ``d2 = (x2^T F x1)^2``,
+    ``s2 = |(F x1)_xy|^2`` and ``s1 = |(F^T x2)_xy|^2``, each ``(B, N, K)``."""
     B, K = F.shape[:2]
-    h1 = torch.cat([x1, torch.ones_like(x1[..., :1])], -1)  # (B, N, 3)
-    h2 = torch.cat([x2, torch.ones_like(x2[..., :1])], -1)
     outer = (h2[..., :, None] * h1[..., None, :]).flatten(-2)  # (B, N, 9)
     d = outer @ F.flatten(-2).transpose(-1, -2)  # (B, N, K)
     # F x1, rows 0 and 1 of every model: columns [row0 of model 0..K-1, row1 of model 0..K-1]
@@ -329,24 +472,25 @@ def _epipolar_terms(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor):
     return d * d, l1[..., :K] + l1[..., K:], l2[..., :K] + l2[..., K:]
 
 
-def _epipolar_errors(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
+def _epipolar_errors(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
     """OpenCV ``computeError``: ``max(d1^2, d2^2)`` squared point-to-epipolar-line distances,
-    ``(B, N, K)`` for ``F: (B, K, 3, 3)``; inf where a line is degenerate."""
-    d2, s1, s2 = _epipolar_terms(F, x1, x2)
+    ``(B, N, K)`` for ``F: (B, K, 3, 3)``; inf where a line is degenerate (and at masked-out slots)."""
+    d2, s1, s2 = _epipolar_terms(F, h1, h2)
     smin = torch.minimum(s1, s2)
     pos = smin > 0
     return torch.where(pos, d2 / torch.where(pos, smin, torch.ones_like(smin)), torch.full_like(d2, float("inf")))
 
 
-def _inlier_mask(F: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor, thr2: float) -> torch.Tensor:
+def _inlier_mask(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor, thr2: float) -> torch.Tensor:
     """``max(d1^2, d2^2) <= thr^2`` for K models on N points -> ``(B, N, K)`` bool, without divisions:
-    ``d^2 <= thr^2 * min(s1, s2)`` (and a non-degenerate line).
+    ``d^2 <= thr^2 * min(s1, s2)`` (and a non-degenerate line; never at a masked-out slot).
 
     OpenCV compares ``(float)err <= (float)thr^2``; this differs only for errors within float32
     rounding of the threshold."""
-    d2, s1, s2 = _epipolar_terms(F, x1, x2)
+    d2, s1, s2 = _epipolar_terms(F, h1, h2)
     smin = torch.minimum(s1, s2)
-    return (d2 <= smin * thr2) & (smin > 0)
+    bound = smin if thr2 == 1.0 else smin * thr2  # x * 1.0 == x: skip a full pass (VINS: 1 px)
+    return (d2 <= bound) & (smin > 0)
 
 
 def _canonical_sign(F: torch.Tensor) -> torch.Tensor:
@@ -362,11 +506,13 @@ def _canonical_sign(F: torch.Tensor) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------------
 # the batched robust loop
 # ----------------------------------------------------------------------------------------------
-def _compact(valid: torch.Tensor, *tensors: torch.Tensor):
-    """Move the valid slots of each row to the front and cut to the largest count; returns the
-    original slot ids too (the random stream is keyed by slot id, so compaction changes nothing)."""
-    n = valid.sum(-1)
-    width = max(int(n.max()), 1) if valid.shape[0] else 1
+def _compact(valid: torch.Tensor, *tensors: torch.Tensor, width: int | None = None):
+    """Move the valid slots of each row to the front and cut to the largest count (``width``, if
+    the caller knows it on the host); returns the original slot ids too (the random stream is keyed
+    by slot id, so compaction changes nothing)."""
+    if width is None:
+        width = int(valid.sum(-1).max()) if valid.shape[0] else 1
+    width = max(width, 1)
     order = torch.argsort((~valid).to(torch.int8), dim=-1, stable=True)[:, :width]
     out = [valid.gather(1, order)]
     for t in tensors:
@@ -374,17 +520,25 @@ def _compact(valid: torch.Tensor, *tensors: torch.Tensor):
     return order, out
 
 
+_FIRST_ROUND = 32  # samples per problem in round 1: clean tracks stop OpenCV within a few samples
+_ROUND_ELEMS = 1 << 20  # auto round size: problems x samples x points per round (~10 floats each)
+_COMPACT_ELEMS = 1 << 16  # score only real roots (argsort + gather + sync) above this many lanes
+
+
 def _robust_group(x1, x2, valid, n_host, states, thr2, confidence, max_iters, H, lmeds):
     """Run RANSAC (``lmeds=False``) or LMedS on one group of problems (all rows use one method).
 
-    ``x1, x2: (G, N, 2)`` float64, finite, valid slots compacted to the front (``valid (G, N)``,
-    ``n_host`` the per-row counts as Python ints); ``states`` per-row ``cv::RNG`` states. Returns the
-    best model ``(G, 3, 3)``, inlier mask ``(G, N)``, ok ``(G,)`` and samples drawn ``(G,)``.
+    ``x1, x2: (G, N, 2)`` float64, finite (zero at masked-out slots), valid slots compacted to the
+    front (``valid (G, N)``, ``n_host`` the per-row counts as Python ints); ``states`` per-row
+    ``cv::RNG`` states; ``H`` the largest round (None: from a memory budget). Returns the best model
+    ``(G, 3, 3)``, inlier mask ``(G, N)``, ok ``(G,)`` and samples drawn ``(G,)``.
 
     RANSAC reproduces OpenCV's sequential loop exactly although a round evaluates many samples at
     once: within a round the running best count (cummax), the iteration bound after every sample
     and the first sample after which OpenCV would stop are all computed, and only samples up to that
-    one count. Hence the result does not depend on the round size.
+    one count. Hence the result does not depend on the round sizes, which are chosen for speed: a
+    first round of ``_FIRST_ROUND`` samples, then each round takes all samples still allowed by the
+    current bound (it only shrinks), capped by ``H`` / the memory budget.
     """
     G, N = valid.shape
     dev = x1.device
@@ -397,38 +551,64 @@ def _robust_group(x1, x2, valid, n_host, states, thr2, confidence, max_iters, H,
         num = max(int(it0), 3)
     else:
         num = max(int(max_iters), 1)
-    table = torch.stack([_opencv_samples(st, nb, num) for st, nb in zip(states, n_host)]).to(dev)  # (G, num, 7)
+    streams = [_subset_stream(st, nb) for st, nb in zip(states, n_host)]
+    x12 = torch.cat([x1, x2], -1)  # (G, N, 4): one gather per round for both images
+    h1 = _homogeneous(x1, valid)
+    h2 = _homogeneous(x2, valid)
     best_F = torch.zeros(G, 3, 3, dtype=torch.float64, device=dev)
+    best_inl = torch.zeros(G, N, dtype=torch.bool, device=dev)  # RANSAC: the best model's mask
     best_score = torch.full((G,), float("inf") if lmeds else -1.0, dtype=torch.float64, device=dev)
     done = torch.zeros(G, dtype=torch.int64, device=dev)
     niters = torch.full((G,), num, dtype=torch.int64, device=dev)
-    ar = torch.arange(max(H, 1), device=dev)
+    done_h, niters_h = [0] * G, [num] * G
     rnd = 0
     while True:
-        act = (done < niters).nonzero().squeeze(-1)  # the one host sync per round
-        if act.numel() == 0:
+        if rnd:
+            done_h, niters_h = torch.stack([done, niters]).tolist()  # the one host sync per round
+        act_l = [i for i in range(G) if done_h[i] < niters_h[i]]
+        if not act_l:
             break
-        # growing rounds (16, 32, ... up to H samples): little waste when OpenCV would stop early
-        Hr = min(H, 16 << rnd, num)
+        A = len(act_l)
+        Hr = max(niters_h[i] - done_h[i] for i in act_l)
+        if not lmeds:  # rounds of 32, 64, 128, ...: at most ~2x the samples OpenCV draws
+            Hr = min(Hr, _FIRST_ROUND << rnd)
+        Hr = min(Hr, H if H is not None else max(16, _ROUND_ELEMS // max(A * N, 1)))
         rnd += 1
-        A = act.numel()
-        a1, a2, av = x1[act], x2[act], valid[act]
-        d0, n0 = done[act], niters[act]
-        g = d0[:, None] + ar[:Hr]  # (A, Hr) sample ids
-        g_ok = g < n0[:, None]
-        idx = table[act[:, None], g.clamp_max(num - 1)]  # (A, Hr, 7)
-        bidx = torch.arange(A, device=dev)[:, None, None]
-        s1 = a1[bidx, idx].reshape(A * Hr, _MODEL_POINTS, 2)
-        s2 = a2[bidx, idx].reshape(A * Hr, _MODEL_POINTS, 2)
-        Fh, fok = _run_7point(s1, s2)  # (A*Hr, 3, 3, 3), (A*Hr, 3)
-        degenerate = _collinear_last(s1) | _collinear_last(s2)
-        fok = (fok & ~degenerate[:, None] & g_ok.reshape(-1)[:, None]).view(A, Hr * 3)
+        # sample tables of this round (host, lazily generated and cached per (state, n))
+        idx_np = np.zeros((A, Hr, _MODEL_POINTS), dtype=np.int64)
+        ok_np = np.zeros((A, Hr), dtype=bool)
+        for j, i in enumerate(act_l):
+            lo = done_h[i]
+            hi = min(lo + Hr, niters_h[i])
+            idx_np[j, : hi - lo] = streams[i].upto(hi)[lo:hi]
+            ok_np[j, : hi - lo] = True
+        idx = torch.from_numpy(idx_np).to(dev)
+        g_ok = torch.from_numpy(ok_np).to(dev)
+        if A == G:  # common case (B = 1, or all problems still running): no gathers
+            a12, b1, b2, d0, n0, nfa, prev = x12, h1, h2, done, niters, nf, best_score
+        else:
+            act = torch.tensor(act_l, dtype=torch.int64, device=dev)
+            a12, b1, b2 = x12[act], h1[act], h2[act]
+            d0, n0, nfa, prev = done[act], niters[act], nf[act], best_score[act]
+        flat = idx.view(A, Hr * _MODEL_POINTS, 1).expand(-1, -1, 4)
+        smp = a12.gather(1, flat).view(A * Hr, _MODEL_POINTS, 2, 2)
+        n_live = int(ok_np.sum())
+        if n_live < A * Hr:
+            # problems near their bound leave lanes past it: solve only the live samples (known on
+            # the host) and put the models back in (problem, sample) order
+            live = torch.from_numpy(np.flatnonzero(ok_np.reshape(-1))).to(dev)
+            Fl, fl_ok, deg = _run_7point(smp[live])
+            Fh = torch.zeros(A * Hr, 3, 3, 3, dtype=Fl.dtype, device=dev).index_copy_(0, live, Fl)
+            fok = torch.zeros(A * Hr, 3, dtype=torch.bool, device=dev).index_copy_(0, live, fl_ok & ~deg[:, None])
+            fok = fok.view(A, Hr * 3)
+        else:
+            Fh, fok, degenerate = _run_7point(smp)  # (A*Hr, 3, 3, 3), (A*Hr, 3), (A*Hr,)
+            fok = (fok & ~degenerate[:, None]).view(A, Hr * 3)
         Fh = Fh.view(A, Hr * 3, 3, 3)
         if lmeds:
-            err = _epipolar_errors(Fh, a1, a2)  # (A, N, 3Hr)
-            e = torch.where(av[..., None], err, torch.full_like(err, float("inf")))
-            kth = (n[act] // 2)[:, None, None].expand(-1, 1, Hr * 3)
-            med = e.sort(dim=1).values.gather(1, kth)[:, 0]
+            err = _epipolar_errors(Fh, b1, b2)  # (A, N, 3Hr), inf at masked-out slots
+            kth = (nfa.to(torch.int64) // 2)[:, None, None].expand(-1, 1, Hr * 3)
+            med = err.sort(dim=1).values.gather(1, kth)[:, 0]
             # Deviation: with n <= 13 the median index n // 2 <= 6 falls among the 7 sample points,
             # whose errors are rounding noise (~1e-25 px^2), so OpenCV's pick among exact fits is
             # decided by floating-point noise. Medians below (1e-6 px)^2 are treated as equal and
@@ -436,51 +616,71 @@ def _robust_group(x1, x2, valid, n_host, states, thr2, confidence, max_iters, H,
             med = med.clamp_min(_LMEDS_EXACT_FIT)
             score = torch.where(fok, med, torch.full_like(med, float("inf")))
             cand, k = score.min(-1)  # first minimum = OpenCV's sequential strict "<"
-            better = cand < best_score[act]
+            better = cand < prev
             new_n = n0
             used = torch.minimum(d0 + Hr, n0) - d0
         else:
-            # score only real roots: most samples have one, so move valid models to the front
-            # (stable, keeps OpenCV's order) and cut to the largest valid count of any problem
-            vorder = torch.argsort((~fok).to(torch.int8), dim=1, stable=True)
-            kmax = max(int(fok.sum(1).max()), 1)
-            vorder = vorder[:, :kmax]
-            Fv = Fh.gather(1, vorder[..., None, None].expand(-1, -1, 3, 3))
-            inl = _inlier_mask(Fv, a1, a2, thr2) & av[..., None]  # (A, N, kmax)
-            cnt = torch.full((A, Hr * 3), -1.0, dtype=torch.float64, device=dev)
-            cnt.scatter_(1, vorder, inl.sum(1).to(torch.float64))
+            if A * Hr * 3 * N > _COMPACT_ELEMS:
+                # score only real roots: most samples have one, so move valid models to the front
+                # (stable, keeps OpenCV's order) and cut to the largest valid count of any problem
+                vorder = torch.argsort((~fok).to(torch.int8), dim=1, stable=True)
+                kmax = max(int(fok.sum(1).max()), 1)
+                vorder = vorder[:, :kmax]
+                Fv = Fh.gather(1, vorder[..., None, None].expand(-1, -1, 3, 3))
+                cnt = torch.full((A, Hr * 3), -1.0, dtype=torch.float64, device=dev)
+                mask = _inlier_mask(Fv, b1, b2, thr2)  # (A, N, kmax)
+                cnt.scatter_(1, vorder, mask.sum(1).to(torch.float64))
+            else:  # small round: scoring everything is cheaper than the compaction
+                vorder = None
+                mask = _inlier_mask(Fh, b1, b2, thr2)  # (A, N, 3Hr)
+                cnt = mask.sum(1).to(torch.float64)
             cnt = torch.where(fok, cnt, torch.full_like(cnt, -1.0))
             c3 = cnt.view(A, Hr, 3)
-            prev = best_score[act]
             floor = prev.clamp_min(_MODEL_POINTS - 1)  # accept only > max(best, modelPoints - 1)
             run_best = torch.maximum(torch.cummax(c3.amax(-1), dim=1).values, prev[:, None])  # after sample i
             improved = run_best > floor[:, None]
-            ep = (nf[act][:, None] - run_best) / nf[act][:, None]
+            ep = (nfa[:, None] - run_best) / nfa[:, None]
             n_after = torch.where(
                 improved, ransac_update_num_iters(confidence, ep, _MODEL_POINTS, n0[:, None].expand(A, Hr)), n0[:, None]
             )
-            stop = (g + 1 >= n_after) | ~g_ok  # OpenCV: for (iter = 0; iter < niters; iter++)
+            ar = torch.arange(Hr, device=dev)
+            stop = (d0[:, None] + ar + 1 >= n_after) | ~g_ok  # OpenCV: for (iter = 0; iter < niters; iter++)
             i_stop = torch.where(stop.any(1), stop.to(torch.int8).argmax(1), torch.full_like(d0, Hr - 1))
-            within = ar[:Hr][None, :] <= i_stop[:, None]
+            within = ar[None, :] <= i_stop[:, None]
             cm = torch.where(within[..., None], c3, torch.full_like(c3, -1.0)).view(A, Hr * 3)
             cand, k = cm.max(-1)  # first maximum = OpenCV's sequential strict ">"
             better = cand > floor
             new_n = n_after.gather(1, i_stop[:, None])[:, 0]
             used = i_stop + 1
-        newF = Fh[torch.arange(A, device=dev), k]
-        best_F[act] = torch.where(better[:, None, None], newF, best_F[act])
-        best_score[act] = torch.where(better, cand, best_score[act])
-        niters[act] = new_n
-        done[act] = d0 + used
+        newF = Fh.gather(1, k[:, None, None, None].expand(-1, 1, 3, 3))[:, 0]
+        if not lmeds:
+            # keep the winning model's mask of this round (OpenCV keeps the mask it counted, too)
+            col = k if vorder is None else (vorder == k[:, None]).to(torch.int8).argmax(1)
+            new_inl = mask.gather(2, col[:, None, None].expand(-1, N, 1))[..., 0]
+            if A == G:
+                best_inl = torch.where(better[:, None], new_inl, best_inl)
+            else:
+                best_inl[act] = torch.where(better[:, None], new_inl, best_inl[act])
+        if A == G:
+            best_F = torch.where(better[:, None, None], newF, best_F)
+            best_score = torch.where(better, cand, best_score)
+            niters = new_n
+            done = d0 + used
+        else:
+            best_F[act] = torch.where(better[:, None, None], newF, best_F[act])
+            best_score[act] = torch.where(better, cand, prev)
+            niters[act] = new_n
+            done[act] = d0 + used
     if lmeds:
         have = torch.isfinite(best_score)
         sigma = 2.5 * 1.4826 * (1.0 + 5.0 / (n - _MODEL_POINTS).clamp_min(1).to(torch.float64))
         sigma = (sigma * torch.where(have, best_score, torch.zeros_like(best_score)).sqrt()).clamp_min(0.001)
-        inl = (_epipolar_errors(best_F[:, None], x1, x2)[..., 0].to(torch.float32) <= (sigma * sigma).to(torch.float32)[:, None]) & valid
+        err = _epipolar_errors(best_F[:, None], h1, h2)[..., 0]
+        inl = (err.to(torch.float32) <= (sigma * sigma).to(torch.float32)[:, None]) & valid
         ok = have & (inl.sum(-1) >= _MODEL_POINTS)
     else:
         ok = best_score >= _MODEL_POINTS
-        inl = _inlier_mask(best_F[:, None], x1, x2, thr2)[..., 0] & valid
+        inl = best_inl
     return best_F, inl, ok, done
 
 
@@ -506,7 +706,7 @@ def find_fundamental(
     confidence: float = 0.99,
     max_iters: int = 1000,
     generator: torch.Generator | None = None,
-    batch_hypotheses: int = 128,
+    batch_hypotheses: int | None = None,
     seed: Union[None, int, Sequence[int], torch.Tensor] = None,
 ) -> FundamentalResult:
     """Robust fundamental matrices for B point-set pairs at once (``cv2.findFundamentalMat`` with
@@ -523,7 +723,9 @@ def find_fundamental(
         generator: optional ``torch.Generator``; one int64 is drawn from it (``torch.randint`` on the
             generator's device) and used as the ``cv::RNG`` state of every problem of the call.
         batch_hypotheses: the largest number of minimal samples evaluated per problem per round
-            (rounds grow 16, 32, 64, ... up to it). Memory/speed knob only: results do not depend on it.
+            (rounds grow 32, 64, 128, ... up to it and never exceed the current iteration bound).
+            None (default): from a memory budget (about 2^20 problem x sample x point lanes per
+            round). Memory/speed knob only: results do not depend on it.
         seed: optional int or ``(B,)`` ints, per-problem ``cv::RNG`` states (two's complement, so
             ``-1`` is ``(uint64)-1``; 0 is mapped to it as well; takes precedence over
             ``generator``). Default (neither given), 0 or -1: OpenCV's own seed for every problem,
@@ -558,7 +760,8 @@ def find_fundamental(
         largest entry positive; re-fit with :func:`refit_fundamental` on ``inliers`` if wanted.
         Points are rounded to float32 (as OpenCV), all arithmetic is float64; F is returned in the
         dtype of ``p1``. Not differentiable (the mask is discrete; see :func:`refit_fundamental`).
-        One host sync per round (loop control) plus one at the start (per-problem counts).
+        One host sync per round (loop control and sample tables; a second one in large rounds,
+        which score real roots only) plus one at the start (per-problem counts).
 
     Seeding rule:
         Sample g of problem b is the g-th 7-subset OpenCV's ``getSubset`` would draw with
@@ -578,8 +781,8 @@ def find_fundamental(
         threshold = 3.0
     if not (2.220446049250313e-16 <= confidence <= 1 - 2.220446049250313e-16):
         confidence = 0.99
-    H = int(batch_hypotheses)
-    if H < 1:
+    H = None if batch_hypotheses is None else int(batch_hypotheses)
+    if H is not None and H < 1:
         raise ValueError(f"batch_hypotheses: expected >= 1, got {batch_hypotheses}")
     states = _seeds(B, generator, seed)
 
@@ -606,13 +809,14 @@ def find_fundamental(
         sel = [b for b in range(B) if n_host[b] >= lo and (hi is None or n_host[b] < hi)]
         if not sel:
             continue
-        rows = torch.tensor(sel, dtype=torch.int64, device=dev)
-        order, (gv, g1, g2) = _compact(eff[rows], x1[rows], x2[rows])
+        # all rows in one group (the usual case): plain slices, no index copies
+        rows = slice(None) if len(sel) == B else torch.tensor(sel, dtype=torch.int64, device=dev)
+        order, (gv, g1, g2) = _compact(eff[rows], x1[rows], x2[rows], width=max(n_host[b] for b in sel))
         gF, ginl, gok, gdone = _robust_group(
             g1, g2, gv, [n_host[b] for b in sel], [states[b] for b in sel], threshold * threshold,
             confidence, max_iters, H, code == METHOD_LMEDS,
         )
-        full_inl = torch.zeros(rows.numel(), N, dtype=torch.bool, device=dev).scatter_(1, order, ginl)
+        full_inl = torch.zeros(len(sel), N, dtype=torch.bool, device=dev).scatter_(1, order, ginl)
         F[rows] = torch.where(gok[:, None, None], _canonical_sign(gF), F[rows])
         inliers[rows] = torch.where(gok[:, None], full_inl, eff[rows])
         ok[rows] = gok
