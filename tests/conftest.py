@@ -16,6 +16,16 @@ SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini"
 TEST_DATA = REPO / "tests" / "data"
 SHARED_DATA = REPO.parent / "shared" / "data"
 
+# One thread for torch and OpenCV in the tests: the suite runs on 2-core machines (CI), where the
+# kernels' many small ops slow down by orders of magnitude when threads compete for the cores.
+torch.set_num_threads(1)
+try:
+    import cv2 as _cv2
+
+    _cv2.setNumThreads(1)
+except ImportError:  # pragma: no cover
+    pass
+
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
 

@@ -62,3 +62,16 @@ def test_clahe_errors():
         clahe(torch.zeros(2, 3, 32, 32, dtype=torch.uint8))
     with pytest.raises(ConfigError):  # reflect-101 pad of 4 rows needs more than 4 rows
         clahe(torch.zeros(1, 1, 4, 33, dtype=torch.uint8))
+
+
+def test_clahe_cpu_row_blocks_equal_one_block(monkeypatch):
+    """The CPU row blocking (cache-sized pixel blocks) does not change the result."""
+    import torch_frontend.clahe as clahe_mod
+
+    b = torch.from_numpy(np.stack([x[:120, :200] for x in _frames(2)]))[:, None]
+    ref = clahe(b)
+    monkeypatch.setattr(clahe_mod, "_BLOCK_PIXELS", 1000)  # 5 rows per block, crossing streams
+    assert torch.equal(clahe(b), ref)
+    monkeypatch.setattr(clahe_mod, "_BLOCK_PIXELS", 1)  # one row per block; padded (49x61) size
+    dmax, same = _compare(np.ascontiguousarray(b[:, 0, :49, :61].numpy()), "cpu")
+    assert dmax == 0 and same == 1.0

@@ -238,3 +238,31 @@ def test_gftt_min_distance_invariant_images(seed, md):
     ref = cv2.goodFeaturesToTrack(im, 200, 0.01, md)
     ref = np.zeros((0, 2)) if ref is None else ref[:, 0]
     assert abs(len(a) - len(ref)) <= 1 and math.isfinite(float(a.sum()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gftt_selection_signed_responses(dtype):
+    """Negative responses and ties (Harris-like): the packed-key sort (float32) and the general
+    two-sort path (float64) both give the sequential reference."""
+    rng = np.random.default_rng(5)
+    for trial in range(6):
+        r = (rng.integers(-40, 40, (2, 23, 31)) / 4.0 - (60.0 if trial % 2 else 0.0)).astype(np.float32)
+        q = [0.0, 0.01, -0.5][trial % 3]
+        pts, valid = _gftt_from_response(torch.from_numpy(r).to(dtype), 30, q, 3, None, None)
+        for b in range(2):
+            ours = [tuple(int(c) for c in p) for p in pts[b][valid[b]].tolist()]
+            assert ours == _reference_select(r[b], 30, q, 3, None)
+
+
+def test_cpu_stream_blocks_equal_one_block(frames, monkeypatch):
+    """The CPU grouping of streams (cache-sized blocks) does not change any result."""
+    import torch_frontend.corners as corners
+
+    x = torch.from_numpy(frames[:3, :96, :128].copy())[:, None]
+    ref_r = min_eigen_response(x)
+    ref_h = harris_response(x)
+    ref_p, ref_v = good_features_to_track(x, 40, 0.01, 7)
+    monkeypatch.setattr(corners, "_BLOCK_PIXELS", 1)  # one stream per block
+    assert torch.equal(min_eigen_response(x), ref_r) and torch.equal(harris_response(x), ref_h)
+    p, v = good_features_to_track(x, 40, 0.01, 7)
+    assert torch.equal(p, ref_p) and torch.equal(v, ref_v)

@@ -15,12 +15,18 @@ the mask, 3x3 dilation NMS with equality, 1-pixel border, descending response wi
 by later raster position first (OpenCV's ``greaterThanPtr``), then greedy minimum-distance
 acceptance including OpenCV's grid detail (a conflict needs ``d² < min_distance²`` *and* the two
 corners in the same or adjacent cells of size ``cvRound(min_distance)``). The greedy pass is
-tensor code: candidates are processed in rank chunks of 128 and, within a chunk, in parallel
-rounds (see ``_resolve_rounds``), which gives exactly the sequential result. There is no
-candidate cap: on EuRoC frames (CLAHE, quality 0.01) there are ~5200-6400 candidates per frame
-and OpenCV's 150th corner is found at rank ~1500-1900, i.e. ~12-15 chunks; work stops at the
-chunk where every stream has its ``max_corners``. Measured on the 24 repo frames: identical
-corners in identical order to ``cv2.goodFeaturesToTrack``.
+tensor code: candidates are processed in rank chunks (128, 256, then 512) and, within a chunk,
+the survivors of the test against earlier accepted corners in parallel rounds (see
+``_resolve_rounds``), which gives exactly the sequential result. There is no candidate cap: on
+EuRoC frames (CLAHE, quality 0.01) there are ~5200-6400 candidates per frame and OpenCV's 150th
+corner is found at rank ~1500-1900, i.e. ~5 chunks; work stops at the chunk where every stream
+has its ``max_corners``. Measured on the 24 repo frames: identical corners in identical order to
+``cv2.goodFeaturesToTrack``.
+
+Speed (CPU, 1 thread): the candidates of all streams are one flat list (NMS by 1-D shifted
+maxima, one ``nonzero``, two stable sorts), and image-sized passes run on groups of streams of
+about one 752x480 frame (``_BLOCK_PIXELS``), so temporaries stay cache-sized; see
+``benchmarks/bench_image.py``.
 """
 
 from __future__ import annotations
@@ -36,8 +42,10 @@ from .errors import ConfigError
 
 __all__ = ["min_eigen_response", "harris_response", "good_features_to_track"]
 
-# candidates resolved together in one greedy chunk (rank order); memory ~ 20 * B * CHUNK² bytes.
+# candidates per greedy chunk (rank order): the first chunk has _CHUNK, each next one twice as
+# many up to _CHUNK_MAX; memory ~ 20 * B * survivors² + 12 * B * chunk * max_corners bytes.
 _CHUNK = 128
+_CHUNK_MAX = 512
 
 
 def _covariance_sums(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
@@ -111,8 +119,36 @@ def min_eigen_response(img: torch.Tensor, block_size: int = 3) -> torch.Tensor:
     Returns:
         ``(B, 1, H, W)`` response in the image's float dtype (float32 for uint8).
     """
-    x = as_float_image(img, "img")
-    sxx, sxy, syy, s = _covariance_sums(x, int(block_size))
+    x = as_image_batch(img, "img")
+    return _stream_blocks(_min_eigen_impl, x, int(block_size))
+
+
+def _stream_blocks(fn, x: torch.Tensor, *args) -> torch.Tensor:
+    """``fn(float x, *args)`` on groups of streams of ~``_BLOCK_PIXELS`` pixels (CPU, no autograd).
+
+    The response needs ~10 image-sized temporaries; for a whole batch they fall out of cache and
+    above glibc's mmap threshold (fresh buffers are page-faulted in on every call), which made
+    B=8 cost ~20x B=1. Per group they stay cache-sized; elsewhere this is a single call.
+    """
+    B, _, H, W = x.shape
+    per = max(1, _BLOCK_PIXELS // max(H * W, 1))
+    if x.device.type != "cpu" or x.requires_grad or B <= per:
+        return fn(as_float_image(x), *args)
+    out = None
+    for b0 in range(0, B, per):
+        r = fn(as_float_image(x[b0:b0 + per]), *args)  # uint8 -> float per group, too
+        if out is None:
+            out = r.new_empty((B,) + tuple(r.shape[1:]))
+        out[b0:b0 + per] = r
+    return out
+
+
+# pixels per CPU block of streams in _stream_blocks (one 752x480 frame per block)
+_BLOCK_PIXELS = 1 << 19
+
+
+def _min_eigen_impl(x: torch.Tensor, block_size: int) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size)
     # lambda_min = ((Sxx + Syy) - sqrt((Sxx - Syy)² + 4 Sxy²)) / 2 on the un-scaled sums, times
     # scale² once (OpenCV scales first; the difference is ~1e-7 relative, and equal sums still
     # give exactly equal responses, which keeps OpenCV's ties).
@@ -136,8 +172,12 @@ def harris_response(img: torch.Tensor, block_size: int = 3, k: float = 0.04) -> 
     Returns:
         ``(B, 1, H, W)`` in the image's float dtype (float32 for uint8).
     """
-    x = as_float_image(img, "img")
-    sxx, sxy, syy, s = _covariance_sums(x, int(block_size))
+    x = as_image_batch(img, "img")
+    return _stream_blocks(_harris_impl, x, int(block_size), float(k))
+
+
+def _harris_impl(x: torch.Tensor, block_size: int, k: float) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size)
     s2 = s * s
     a = sxx * s2
     b = sxy * s2
@@ -231,35 +271,64 @@ def _gftt_from_response(
     m = _mask_batch(mask, B, H, W, dev)
 
     # max inside the mask (VINS-Fusion-gpu#25); an empty mask gives maxVal 0 like minMaxLoc.
-    max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
+    if mask is None:
+        max_val = resp.flatten(1).amax(1)
+    else:
+        max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
     max_val = torch.where(torch.isfinite(max_val), max_val, torch.zeros_like(max_val))
     # threshold() on a float32 image casts its double threshold to float
     thr = (max_val.double() * float(quality_level)).to(resp.dtype)
-    t = torch.where(resp > thr[:, None, None], resp, torch.zeros_like(resp))
-    dil = _dilate3x3(t)
-    cand = (t != 0) & (t == dil) & m
-    cand[:, 0, :] = False
-    cand[:, H - 1, :] = False
-    cand[:, :, 0] = False
-    cand[:, :, W - 1] = False
-
-    n_cand = cand.flatten(1).sum(1)
-    M = int(n_cand.max())  # host sync: number of candidates decides the work
-    if M == 0:
+    # candidates: t != 0 and t == its 3x3 dilation (border excluded), t = resp thresholded to 0.
+    # On CPU by groups of streams (see _stream_blocks: image-sized temporaries stay cache-sized).
+    # The candidates of all streams form one flat list of indices into (B*H*W,), raster order
+    # (nonzero: one host sync per group, for its length).
+    per = B if dev.type != "cpu" else max(1, _BLOCK_PIXELS // max(H * W, 1))
+    flats = []
+    for b0 in range(0, B, per):
+        r = resp[b0:b0 + per]
+        t = torch.where(r > thr[b0:b0 + per, None, None], r, 0.0)
+        cand = _nms_candidates(t)
+        if mask is not None:
+            cand &= m[b0:b0 + per]
+        f = cand.view(-1).nonzero().squeeze(1)
+        flats.append(f + b0 * H * W if b0 else f)
+    flat = flats[0] if len(flats) == 1 else torch.cat(flats)
+    if flat.numel() == 0:
         return out_pts, out_valid
-    vals = torch.where(cand, t, float("-inf")).flatten(1)
-    top_v, top_i = torch.topk(vals, M, dim=1, sorted=False)
-    # order: response descending, ties later raster index first (greaterThanPtr). Two stable
-    # sorts: by index descending, then by value descending.
-    si = torch.sort(top_i, dim=1, descending=True, stable=True)
-    top_i = si.values
-    top_v = torch.gather(top_v, 1, si.indices)
-    sv = torch.sort(top_v, dim=1, descending=True, stable=True)
-    top_i = torch.gather(top_i, 1, sv.indices)
-    cvalid = torch.isfinite(sv.values)
-    cx = top_i % W
-    cy = top_i // W
-    pos = torch.stack([cx, cy], -1)  # (B, M, 2) long
+    # order per stream: response descending, ties later raster index first (greaterThanPtr)
+    v = resp.reshape(-1)[flat]  # == t at candidates (t != 0 there)
+    ib = max(1, (H * W - 1).bit_length())  # bits of a raster index
+    if resp.dtype == torch.float32 and 32 + ib + max(1, (B - 1).bit_length()) <= 62:
+        # one sort of a unique int64 key (stream, value descending, raster index descending).
+        # float32 bits -> int with the same order (negative values: flip the magnitude bits)
+        bits = v.view(torch.int32).to(torch.int64)
+        bits = bits ^ ((bits >> 31) & 0x7FFFFFFF)
+        b = torch.div(flat, H * W, rounding_mode="floor")
+        pix = flat - b * (H * W)
+        key = (b << (32 + ib)) + ((0x7FFFFFFF - bits) << ib) + ((1 << ib) - 1 - pix)
+        o = torch.sort(key).indices
+        b, pix = b[o], pix[o]
+    else:
+        # general: flip (-> stream and raster index descending), stable sort by value
+        # descending, stable sort by stream ascending
+        flat = flat.flip(0)
+        flat = flat[torch.sort(v.flip(0), descending=True, stable=True).indices]
+        b = torch.div(flat, H * W, rounding_mode="floor")
+        sb = torch.sort(b, stable=True)
+        b = sb.values
+        flat = flat[sb.indices]
+        pix = flat - b * (H * W)
+    counts = torch.bincount(b, minlength=B)
+    M = int(counts.max())  # host sync: the candidate count decides the work
+    rank = torch.arange(flat.numel(), device=dev) - (torch.cumsum(counts, 0) - counts)[b]
+    slot = b * M + rank
+    pos_flat = torch.zeros(B * M, 2, dtype=torch.long, device=dev)
+    pos_flat[slot, 0] = pix % W
+    pos_flat[slot, 1] = torch.div(pix, W, rounding_mode="floor")
+    cvalid = torch.zeros(B * M, dtype=torch.bool, device=dev)
+    cvalid[slot] = True
+    pos = pos_flat.view(B, M, 2)  # (B, M, 2) long, rank order
+    cvalid = cvalid.view(B, M)
 
     accepted = _greedy_accept(pos, cvalid, mc, float(min_distance))
 
@@ -276,39 +345,63 @@ def _gftt_from_response(
     return out_pts, out_valid
 
 
-def _resolve_rounds(conf_f: torch.Tensor, und: torch.Tensor) -> torch.Tensor:
+def _resolve_rounds(conf_t: torch.Tensor, und: torch.Tensor) -> torch.Tensor:
     """Greedy acceptance in parallel rounds.
 
-    ``conf_f`` (B, C, C) float 0/1: ``conf_f[b, i, j] = 1`` iff j is ranked above i and accepting
-    j excludes i. ``und`` (B, C) bool: candidates still to decide (others are out). Returns
-    accepted (B, C): i accepted iff no accepted j conflicts with it - the sequential greedy
-    result. Each round rejects candidates with an accepted higher conflict and accepts those
-    whose higher conflicts are all decided; the highest undecided one is always decided, and
-    real data needs a handful of rounds (one host check each).
+    ``conf_t`` (B, C, C) float 0/1, *transposed* conflicts: ``conf_t[b, j, i] = 1`` iff j is
+    ranked above i and accepting j excludes i. ``und`` (B, C) bool: candidates still to decide
+    (others are out). Returns accepted (B, C): i accepted iff no accepted j conflicts with it -
+    the sequential greedy result. Each round rejects candidates with an accepted higher conflict
+    and accepts those whose higher conflicts are all decided; the highest undecided one is
+    always decided, and real data needs a handful of rounds (one host check each).
     """
-    und = und.clone()
     acc = torch.zeros_like(und)
-    while bool(und.any()):
-        # one matmul answers both questions: any accepted / any undecided higher conflict
-        state = torch.stack([acc, und], -1).to(conf_f.dtype)  # (B, C, 2)
-        hits = torch.bmm(conf_f, state) > 0
-        has_acc, has_und = hits[..., 0], hits[..., 1]
-        new_acc = und & ~has_acc & ~has_und
-        und &= ~has_acc & ~new_acc
-        acc |= new_acc
-    return acc
+    if not bool(und.any()):
+        return acc
+    # state rows: [accepted, undecided] as 0/1 floats
+    state = torch.zeros(und.shape[0], 2, und.shape[1], dtype=conf_t.dtype, device=und.device)
+    state[:, 1] = und
+    while True:
+        # one (B, 2, C) x (B, C, C) matmul answers both questions for every i: any accepted /
+        # any undecided higher conflict (this layout is ~4x faster on CPU than (B, C, C) x
+        # (B, C, 2); counts are small integers, exact in float32)
+        blocked, waiting = (torch.bmm(state, conf_t) > 0).unbind(1)
+        und = und & ~blocked  # rejected: an accepted higher conflict
+        acc |= und & ~waiting  # accepted: every higher conflict decided, none accepted
+        und &= waiting
+        if not bool(und.any()):
+            return acc
+        state[:, 0] = acc
+        state[:, 1] = und
 
 
-def _dilate3x3(t: torch.Tensor) -> torch.Tensor:
-    """3x3 max filter of (B, H, W) with a -inf border (like ``dilate``'s default border).
+def _nms_candidates(t: torch.Tensor) -> torch.Tensor:
+    """``t != 0 & t == dilate3x3(t)`` of (B, H, W), False on the 1-pixel image border.
 
-    Separable max of shifted slices: same result as ``max_pool2d(t, 3, 1, 1)``, ~10x faster on CPU.
+    The 3x3 max is taken on the flat (B*H*W,) buffer with 1-D shifts (contiguous, vectorised
+    maxima; ~10x faster on CPU than 2-D slices or ``max_pool2d``). A shift by one mixes the end
+    of a row with the start of the next, and a shift by W mixes streams, but only in windows
+    centred on border pixels, which are never candidates.
     """
-    p = F.pad(t, (1, 1, 1, 1), value=float("-inf"))
-    r = torch.maximum(p[..., :-2], p[..., 1:-1])
-    r = torch.maximum(r, p[..., 2:])
-    c = torch.maximum(r[..., :-2, :], r[..., 1:-1, :])
-    return torch.maximum(c, r[..., 2:, :])
+    B, H, W = t.shape
+    cand = torch.zeros(B, H, W, dtype=torch.bool, device=t.device)
+    N = B * H * W
+    if H < 3 or W < 3:
+        return cand
+    f = t.reshape(-1)
+    r = torch.maximum(f[:-2], f[1:-1])  # r[j]: row max centred on j + 1
+    r = torch.maximum(r, f[2:], out=r)
+    d = torch.maximum(r[:-2 * W], r[W:-W])  # d[k]: 3x3 max centred on k + W + 1
+    d = torch.maximum(d, r[2 * W:], out=d)
+    centre = f[W + 1:N - W - 1]
+    c = cand.view(-1)[W + 1:N - W - 1]
+    torch.eq(centre, d, out=c)
+    c &= centre != 0
+    cand[:, 0, :] = False
+    cand[:, H - 1, :] = False
+    cand[:, :, 0] = False
+    cand[:, :, W - 1] = False
+    return cand
 
 
 def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float) -> torch.Tensor:
@@ -319,9 +412,10 @@ def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, mi
     Returns ``accepted`` (B, M) bool: candidate i accepted iff no *accepted* higher-ranked
     candidate conflicts with it - exactly OpenCV's sequential loop.
 
-    Candidates are processed in rank chunks of ``_CHUNK``. A chunk's candidates first test the
-    corners accepted in earlier chunks (a compact padded buffer, ~max_corners wide), then
-    resolve among themselves in rounds: every undecided candidate with an accepted higher
+    Candidates are processed in rank chunks of ``_CHUNK``, doubling up to ``_CHUNK_MAX``. A
+    chunk's candidates first test the corners accepted in earlier chunks (a fixed buffer of
+    max(mc) slots); the survivors are compacted (rank order kept) and resolve among themselves
+    in rounds: every undecided candidate with an accepted higher
     conflict is rejected; every undecided candidate whose higher conflicts are all decided (none
     accepted) is accepted. By induction on rank this is the greedy result, and each round
     decides at least the highest undecided candidate. Chunks stop once every stream has its
@@ -347,40 +441,60 @@ def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, mi
 
     def conflicts(a, b) -> torch.Tensor:
         """a, b: (x, y, cell x, cell y) tuples of (B, Ca) / (B, Cb) -> (B, Ca, Cb) bool."""
+        # in place: (B, Ca, Cb) temporaries of several MB at B=8 cost page faults when fresh
         dx = a[0][:, :, None] - b[0][:, None, :]
+        dx *= dx
         dy = a[1][:, :, None] - b[1][:, None, :]
-        c = dx * dx + dy * dy < r2i
+        dy *= dy
+        dx += dy
+        c = dx < r2i
         if need_cells:
             c &= (a[2][:, :, None] - b[2][:, None, :]).abs() <= 1
             c &= (a[3][:, :, None] - b[3][:, None, :]).abs() <= 1
         return c
 
-    acc_buf = tuple(t[:, :0] for t in (xs, ys, gx, gy))  # accepted corners of earlier chunks
-    acc_ok = cvalid[:, :0]
+    # accepted corners of earlier chunks: fixed-capacity buffer of Kcap = max(mc) slots plus a
+    # dump slot. A stream only collects while it has < mc <= Kcap corners, so it never needs more.
+    kcap = int(mc.max()) if B > 0 else 0
+    acc_buf = tuple(torch.zeros(B, kcap + 1, dtype=t.dtype, device=dev) for t in (xs, ys, gx, gy))
+    acc_ok = torch.zeros(B, kcap + 1, dtype=torch.bool, device=dev)
     count = torch.zeros(B, dtype=torch.long, device=dev)
-    for start in range(0, M, _CHUNK):
-        stop = min(start + _CHUNK, M)
+    filled = 0  # max(count), capped at kcap (host copy)
+    start, size = 0, _CHUNK
+    while start < M:
+        stop = min(start + size, M)
+        # later chunks are mostly rejected by the accepted buffer: grow them (fewer rounds of
+        # Python overhead) while the survivors alone enter the quadratic in-chunk resolution
+        size = min(2 * size, _CHUNK_MAX)
         live = count < mc  # streams still collecting
         v = cvalid[:, start:stop] & live[:, None]
         if not bool(v.any()):
             break
         cur = tuple(t[:, start:stop] for t in (xs, ys, gx, gy))
-        und = v.clone()
-        if acc_ok.shape[1] > 0:
-            und &= ~(conflicts(cur, acc_buf) & acc_ok[:, None, :]).any(-1)
-        C = stop - start
-        conf = conflicts(cur, cur)
-        conf &= torch.ones(C, C, dtype=torch.bool, device=dev).tril(-1)  # j < i: j ranked higher
-        conf &= v[:, None, :]
-        conf_f = conf.to(torch.float32)
-        acc = _resolve_rounds(conf_f, und)
-        accepted[:, start:stop] = acc
-        n_acc = acc.sum(1)
-        count = count + n_acc
-        width = int(n_acc.max())
-        if width > 0:
-            # compact this chunk's accepted corners (rank order kept) into the buffer
-            order = torch.sort(acc.to(torch.uint8), dim=1, descending=True, stable=True).indices[:, :width]
-            acc_buf = tuple(torch.cat([buf, torch.gather(t, 1, order)], 1) for buf, t in zip(acc_buf, cur))
-            acc_ok = torch.cat([acc_ok, torch.gather(acc, 1, order)], 1)
+        und = v
+        if filled > 0:  # only the filled part of the buffer (slots >= a stream's count are off)
+            hit = conflicts(cur, tuple(t[:, :filled] for t in acc_buf))
+            hit &= acc_ok[:, None, :filled]
+            und = v & ~hit.any(-1)
+        S = int(und.sum(1).max())
+        if S > 0:
+            # compact the survivors (rank order kept) and resolve them among themselves
+            order = torch.sort(und.to(torch.uint8), dim=1, descending=True, stable=True).indices[:, :S]
+            sur = tuple(torch.gather(t, 1, order) for t in cur)
+            sv = torch.gather(und, 1, order)
+            conf = conflicts(sur, sur)  # symmetric; transposed layout [j, i] for _resolve_rounds
+            conf &= torch.ones(S, S, dtype=torch.bool, device=dev).triu(1)  # j < i: j ranked higher
+            conf &= sv[:, :, None]
+            acc = _resolve_rounds(conf.to(torch.float32), sv)
+            accepted[:, start:stop].scatter_(1, order, acc)
+            # append to the buffer in rank order (beyond kcap -> dump slot)
+            slot = torch.cumsum(acc, 1) - 1 + count[:, None]
+            slot = torch.where(acc & (slot < kcap), slot, kcap)
+            for buf, t in zip(acc_buf, sur):
+                buf.scatter_(1, slot, t)
+            acc_ok.scatter_(1, slot, acc)
+            acc_ok[:, kcap] = False
+            count += acc.sum(1)
+            filled = min(int(count.max()), kcap)
+        start = stop
     return accepted

@@ -4,7 +4,10 @@
 descending priority (the track count; ties by index, i.e. a stable sort - VINS' ``std::sort`` is
 not stable, spec §3.7.2), a point is kept iff the mask at its rounded pixel is exactly 255, and
 every kept point blanks a filled disc of ``radius`` around its rounded centre. The result is the
-sequential result exactly, computed in parallel rounds (see ``corners._resolve_rounds``).
+sequential result exactly, computed in parallel rounds (see ``corners._resolve_rounds``) on the
+N x N conflict matrix; the kept discs are then rasterised all at once as row spans (a +1/-1
+difference buffer and one cumsum along x), so the cost is ~linear in B and independent of how
+many discs overlap.
 
 The disc is ``dx² + dy² <= radius²`` around the ``cvRound``-ed centre, which equals
 ``cv2.circle(mask, centre, radius, 0, -1)`` pixel for pixel for integer radii (checked for radii
@@ -124,28 +127,62 @@ def distance_mask(
     base_ok = torch.gather(mask.reshape(B, -1), 1, flat) == 255
     eligible = inside & base_ok
 
-    # conflict: j ranked above i and j's disc covers i's rounded pixel
+    # conflict: j ranked above i and j's disc covers i's rounded pixel, in the transposed
+    # [j, i] layout of _resolve_rounds (cover is symmetric)
     dx = rx[:, :, None] - rx[:, None, :]
     dy = ry[:, :, None] - ry[:, None, :]
     cover = (dx * dx + dy * dy).double() <= float(radius) ** 2
-    higher = torch.ones(N, N, dtype=torch.bool, device=dev).tril(-1)
-    conf = cover & higher & eligible[:, None, :]
+    higher = torch.ones(N, N, dtype=torch.bool, device=dev).triu(1)
+    conf = cover & higher & eligible[:, :, None]
     keep_sorted = _resolve_rounds(conf.to(torch.float32), eligible)
 
     # back to input order
     keep = torch.zeros_like(keep_sorted).scatter_(1, order, keep_sorted)
 
-    # rasterise discs of kept points: scatter 0 at centre + offsets (out-of-image -> dump slot)
-    off = disc_offsets(radius, dev)  # (P, 2)
-    px = rx[:, :, None] + off[None, None, :, 0]
-    py = ry[:, :, None] + off[None, None, :, 1]
-    ok = keep_sorted[:, :, None] & (px >= 0) & (px < W) & (py >= 0) & (py < H)
-    bidx = torch.arange(B, device=dev)[:, None, None]
-    idx = torch.where(ok, (bidx * H + py) * W + px, torch.full_like(px, B * H * W))
-    buf = torch.cat([mask.reshape(-1), mask.new_zeros(1)])
-    buf.index_fill_(0, idx.reshape(-1), 0)
-    mask = buf[:-1].view(B, H, W)
+    # rasterise the kept discs: each disc is 2r+1 row spans [x - hw(dy), x + hw(dy)]. A +1 / -1
+    # at every span's ends in a per-row difference buffer and one cumsum along x give the cover
+    # count of every pixel: O(B * N * r) scatter work plus a few image-sized passes, instead of
+    # O(B * N * r²) disc-offset indices.
+    mask = _clear_discs(mask, rx, ry, keep_sorted, float(radius))
     return keep, mask
+
+
+def _span_half_widths(radius: float, device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Row offsets ``dy`` of the disc ``dx² + dy² <= radius²`` and each row's half width (long)."""
+    r = int(radius)
+    ax = torch.arange(-r - 1, r + 2, device=device)
+    inside = (ax[:, None] * ax[:, None] + ax[None, :] * ax[None, :]).double() <= float(radius) ** 2
+    n = inside.sum(1)  # dx count per row dy: 2 * hw + 1 (0 when the row is empty)
+    rows = n > 0
+    return ax[rows], (n[rows] - 1) // 2
+
+
+def _clear_discs(mask: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, keep: torch.Tensor,
+                 radius: float) -> torch.Tensor:
+    """Set the filled discs ``dx² + dy² <= radius²`` around (rx, ry) (B, N) long of ``keep`` to 0."""
+    B, H, W = mask.shape
+    dev = mask.device
+    dys, hws = _span_half_widths(radius, dev)  # (S,)
+    py = ry[:, :, None] + dys  # (B, N, S) span rows
+    x0 = (rx[:, :, None] - hws).clamp_min(0)
+    x1 = (rx[:, :, None] + hws + 1).clamp_max(W)  # exclusive end, <= W
+    ok = keep[:, :, None] & (py >= 0) & (py < H) & (x0 < x1)
+    row = (torch.arange(B, device=dev)[:, None, None] * H + py.clamp(0, H - 1)) * W
+    dump = B * H * W  # spans that are off the image or not kept add into a dump slot
+    start = torch.where(ok, row + x0, dump)
+    # a span ending at the right border needs no -1: the cumsum restarts on every row
+    stop = torch.where(ok & (x1 < W), row + x1, dump)
+    # Cover counts in uint8, modulo 256 (-1 is +255): kept points are pairwise more than
+    # ``radius`` apart (each is outside the other's disc), so a pixel lies in at most 5 kept
+    # discs (their centres, seen from the pixel, are > 60 degrees apart): the count is exact.
+    diff = torch.zeros(dump + 1, dtype=torch.uint8, device=dev)
+    n = start.numel()
+    diff.index_put_((start.view(-1),), torch.ones(1, dtype=torch.uint8, device=dev).expand(n), accumulate=True)
+    diff.index_put_((stop.view(-1),), torch.full((1,), 255, dtype=torch.uint8, device=dev).expand(n),
+                    accumulate=True)
+    cover = diff[:dump].view(B, H, W).cumsum(-1, dtype=torch.uint8)
+    # logical_not + a uint8 multiply: ~10x faster on CPU than a comparison and masked_fill_
+    return mask.mul_(torch.logical_not(cover).view(torch.uint8))
 
 
 def fisheye_mask(
