@@ -4,15 +4,19 @@ Cases: N = 150 and 1000 points (``goodFeaturesToTrack`` corners of the previous 
 streams (consecutive-frame pairs of the sample sequence, reused cyclically), win 21, maxLevel 3,
 30 iterations / eps 0.01, uint8 input (fixed-point emulation, OpenCV's default path). Both sides
 build their pyramids inside the call. OpenCV has no batch: it runs the B pairs one after the
-other. ``torch`` runs eager and with ``torch.compile`` of the per-iteration kernel
-(``torch_frontend.lk.compile_step``); a compile failure is caught and reported in the table.
+other. ``torch`` runs eager (and, with ``--compile``, with ``torch.compile`` of the per-iteration
+kernel, ``torch_frontend.lk.compile_step``; a compile failure is caught and reported in the table).
+Two extra row groups: ``pyr`` = LK on pyramids built beforehand (how the tracker calls it: the
+previous frame's pyramid, with Scharr gradients, is kept; OpenCV's column is its usual call, which
+builds them, as its Python binding takes no pyramids), and ``build`` = ``build_pyramid`` (4
+levels + gradients) vs ``cv2.buildOpticalFlowPyramid`` (4 levels, with derivatives).
 
 Prints a markdown table (median ms, ratio torch / OpenCV: < 1 means torch is faster) and writes
 ``benchmarks/results/lk.json`` (temp file + rename). Runtime: a few minutes on 2 cores
 (``--quick`` skips B = 64 with N = 1000). Both libraries use ``--threads`` intra-op threads
 (default 1).
 
-Usage: ``python benchmarks/bench_lk.py [--device cpu|cuda] [--repeat N] [--threads T] [--no-compile] [--quick]``
+Usage: ``python benchmarks/bench_lk.py [--device cpu|cuda] [--repeat N] [--threads T] [--compile] [--quick]``
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ sys.path.insert(0, str(REPO))
 
 from torch_frontend import lk as lk_mod  # noqa: E402
 from torch_frontend.lk import track_lk  # noqa: E402
+from torch_frontend.pyramid import build_pyramid  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
@@ -67,7 +72,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument("--compile", action="store_true", help="also time torch.compile of the step kernel (slow)")
+    ap.add_argument("--no-compile", action="store_true", help=argparse.SUPPRESS)  # old flag: the default now
     ap.add_argument("--quick", action="store_true", help="skip B=64 x N=1000")
     ap.add_argument("--threads", type=int, default=1,
                     help="intra-op threads for torch and OpenCV alike (default 1: a fair single-core comparison, "
@@ -91,7 +97,7 @@ def main(argv=None):
             per.append(c[:n].astype(np.float32))
         pts_by_n[n] = per
 
-    modes = ["eager"] + ([] if args.no_compile else ["compile"])
+    modes = ["eager"] + (["compile"] if args.compile and not args.no_compile else [])
     rows, notes = [], []
     for mode in modes:
         if mode == "compile":
@@ -130,6 +136,32 @@ def main(argv=None):
                 print(row, flush=True)
     lk_mod.compile_step(False)
 
+    # tracker-style calls (pyramids built beforehand) and the pyramid build itself, N = 150
+    n = 150
+    for B in (1, 8):
+        idx = [b % npairs for b in range(B)]
+        prev = torch.from_numpy(np.stack([frames[i] for i in idx]))[:, None].to(device)
+        nxt = torch.from_numpy(np.stack([frames[i + 1] for i in idx]))[:, None].to(device)
+        pts = torch.from_numpy(np.stack([pts_by_n[n][i] for i in idx])).to(device)
+        pa, pb = build_pyramid(prev, 3), build_pyramid(nxt, 3)
+        def run_cv_pyr(idx=idx):  # the Python binding takes no pyramids: OpenCV builds them inside
+            for i in idx:
+                cv2.calcOpticalFlowPyrLK(frames[i], frames[i + 1], pts_by_n[n][i], None, winSize=(21, 21),
+                                         maxLevel=3, criteria=CRIT)
+
+        def run_cv_build(idx=idx):
+            for i in idx:
+                cv2.buildOpticalFlowPyramid(frames[i + 1], (21, 21), 3)
+
+        for mode, f_t, f_cv in (("pyr", lambda pa=pa, pb=pb, pts=pts: track_lk(pa, pb, pts), run_cv_pyr),
+                                ("build", lambda nxt=nxt: build_pyramid(nxt, 3), run_cv_build)):
+            t_torch, reps = _time(f_t, args.repeat, device)
+            t_cv, _ = _time(f_cv, args.repeat, torch.device("cpu"))
+            row = {"mode": mode, "N": n if mode == "pyr" else 0, "B": B, "torch_ms": round(t_torch, 2),
+                   "torch_reps": reps, "opencv_ms": round(t_cv, 2), "ratio": round(t_torch / t_cv, 2)}
+            rows.append(row)
+            print(row, flush=True)
+
     print(f"\nPyramidal LK, 752x480, win 21, maxLevel 3, device {device}, torch {torch.__version__} "
           f"({torch.get_num_threads()} threads), OpenCV {cv2.__version__} ({cv2.getNumThreads()} threads)\n")
     print("| mode | N | B | torch ms | OpenCV ms | ratio torch/OpenCV | torch ms / stream |")
@@ -148,7 +180,9 @@ def main(argv=None):
             "torch_threads": torch.get_num_threads(), "opencv_threads": cv2.getNumThreads(),
             "machine": platform.machine(), "size": [752, 480], "repeat": args.repeat,
             "params": {"win_size": 21, "max_level": 3, "max_iters": 30, "eps": 0.01, "input": "uint8"},
-            "note": "OpenCV runs the B pairs sequentially; both sides build pyramids inside the call",
+            "note": "OpenCV runs the B pairs sequentially; eager/compile rows build both pyramids inside the "
+                    "call; 'pyr' rows track on pyramids built beforehand; 'build' rows build one 4-level pyramid "
+                    "per stream (torch: with Scharr gradients; OpenCV: with derivatives)",
             "notes": notes}
     fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as f:

@@ -279,6 +279,20 @@ def test_batch_equals_separate_calls_and_modes(cam0, device):
         assert (o1[0] - out[b]).abs().max() <= 1e-4
     assert not st[1, ::3].any()
     assert torch.equal(out[1, ::3], pts[1, ::3])  # padded lanes untouched
+    # large batches are processed in groups of streams: same results (group size forced to 1 here),
+    # for image and pyramid inputs, with the backward check too
+    import torch_frontend.lk as lk_mod
+
+    ref_fb = track_lk(tA, tB, pts, valid, forward_backward=True)
+    old = lk_mod._MAX_STREAMS
+    try:
+        lk_mod._MAX_STREAMS = 1
+        og, sg = track_lk(tA, tB, pts, valid)
+        assert torch.equal(sg, st) and torch.equal(og, out)
+        og, sg = track_lk(build_pyramid(tA, 3), build_pyramid(tB, 3), pts, valid, forward_backward=True)
+        assert torch.equal(sg, ref_fb[1]) and torch.equal(og, ref_fb[0])
+    finally:
+        lk_mod._MAX_STREAMS = old
     # pyramids built once (as the tracker keeps them) and the sync-free fixed-iteration mode
     pa, pb = build_pyramid(tA, 3), build_pyramid(tB, 3, with_gradients=False)
     o2, s2 = track_lk(pa, pb, pts, valid, early_exit=False)

@@ -2,22 +2,35 @@
 
 All points of all streams move together: per pyramid level the template windows of the previous
 image (grey levels and Scharr derivatives) and the 2x2 gradient matrices are computed once for every
-point; each iteration then samples only the next image's ``win x win`` windows (one gather of a
-``(win+1) x (win+1)`` patch per point through an overlapping-window view, plus four multiply-adds on
-the flattened patch), solves the 2x2 systems in closed form and moves the points that are still
-active. Points that converged, oscillated, left the image or failed the eigenvalue test are frozen
-by masks. With ``early_exit`` (default) the iteration works on a compacted set of still-moving lanes
-(re-compacted when it halves) and stops when none is left: one host sync per iteration. With
+point; each iteration then samples only the next image's ``win x win`` windows (one ``index_select``
+of a ``(win+1) x (win+1)`` patch per point, four multiply-adds), solves the 2x2 systems in closed
+form and moves the points that are still active. Points that converged, oscillated, left the image
+or failed the eigenvalue test are frozen by masks. With ``early_exit`` (default) the template and
+the iterations work on the processed lanes only, the iterations on a compacted set of still-moving
+lanes (re-compacted when it halves), stopping when none is left: one host sync per iteration. With
 ``early_exit=False`` exactly ``max_iters`` masked iterations run with no host sync (same results).
 The per-iteration kernel ``_lk_step`` is a pure tensor function; :func:`compile_step` swaps in a
 ``torch.compile`` d version.
 
+Performance layout (CPU and GPU alike): windows are stored *points last*, ``(rows, cols, m)``, so
+every per-point weight broadcasts along the contiguous axis and the four bilinear taps are strided
+views of one patch. The next image is padded once per level (BORDER_REFLECT_101) and each iteration
+gathers whole patches through an overlapping view (one ``index_select`` by top-left index, then a
+transpose to points-last, in cache-sized blocks for many points). The previous image's windows are
+gathered once per level straight from the unpadded level and its Scharr derivatives through
+per-level reflect-101 index tables (no padded copies: padding three full images per level cost more
+than the gathers for a few hundred points), the derivatives' zero border being a mask applied only
+when some window touches the edge. OpenCV's integer weights take ~9 ops (``_fixed_weights``). For
+a few hundred points on CPU the cost is the number of small ops (~60 per iteration, ~70 per level
+template), for thousands the memory passes over the ``(win+1)^2 x m`` windows (see
+``benchmarks/bench_lk.py``).
+
 OpenCV behaviour reproduced (``modules/video/src/lkpyramid.cpp``, checked against cv2 4.x):
 
-* pyramids: ``pyrDown`` chain (8-bit rounding per level for uint8 input), levels padded by the
-  window size with BORDER_REFLECT_101; Scharr derivatives of the previous image computed on the
-  unpadded level (REFLECT_101 inside) and padded with *zeros* (``BORDER_CONSTANT``) — that is what
-  a window hanging over the image edge sees. The number of levels is capped where OpenCV's
+* pyramids: ``pyrDown`` chain (8-bit rounding per level for uint8 input), levels seen padded by
+  the window size with BORDER_REFLECT_101; Scharr derivatives of the previous image computed on the
+  unpadded level (REFLECT_101 inside) and seen padded with *zeros* (``BORDER_CONSTANT``) — that is
+  what a window hanging over the image edge sees. The number of levels is capped where OpenCV's
   ``buildOpticalFlowPyramid`` stops (next level <= ``win_size``).
 * per level ``L..0``: ``prevPt = pts / 2^l``; ``nextPt = init / 2^L`` at the top level, ``2 nextPt``
   below; window origin ``floor(pt - halfWin)`` must lie in ``[-win, W) x [-win, H)`` (else the point
@@ -29,11 +42,12 @@ OpenCV behaviour reproduced (``modules/video/src/lkpyramid.cpp``, checked agains
   ``max_iters`` keeps status 1.
 * fixed point (``fixed_point=True``, default for 8-bit input): bilinear weights
   ``iw = round(w * 2^14)`` (``iw11 = 2^14 - others``), window grey levels descaled to 1/32 grey
-  level with round-half-up (``(s + 2^8) >> 9``), derivatives to integers (``(s + 2^13) >> 14``).
-  With these the results agree with OpenCV bit for bit on >99 % of points and to ~1e-5 px on the
-  rest (float summation order). The rounding is applied with a straight-through estimator, so
-  gradients still flow (those of the float interpolation). Float images default to plain float
-  bilinear interpolation (differentiable, exact gradients; ~1e-4 px median from OpenCV).
+  level with round-half-up (``(s + 2^8) >> 9``), derivatives to integers (``(s + 2^13) >> 14``,
+  in int32: exact). With these the results agree with OpenCV bit for bit on >99 % of points and to
+  ~1e-4 px on the rest (float summation order of the 2x2 matrix and of ``b``). The rounding is
+  applied with a straight-through estimator, so gradients still flow (those of the float
+  interpolation). Float images default to plain float bilinear interpolation (differentiable, exact
+  gradients; ~1e-4 px median from OpenCV).
 
 Gradients: the iterations are *unrolled* — the autograd graph keeps every iteration of every level
 and frozen lanes pass through ``torch.where``. This differentiates exactly the function computed
@@ -47,20 +61,26 @@ gradient w.r.t. the points is the one-sided (right) derivative.
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Tuple, Union
 
 import torch
-import torch.nn.functional as F
 
 from ._checks import as_image_batch, check_points, check_shape, default_valid
 from .errors import ConfigError
-from .pyramid import Pyramid, build_pyramid, pad_reflect101
+from .pyramid import Pyramid, _reflect101_index, build_pyramid, pad_reflect101
 
 __all__ = ["track_lk", "compile_step"]
 
 _W_BITS = 14
+_W_ONE = float(1 << _W_BITS)
 _FLT_SCALE = 2.0**-20
 _FLT_EPSILON = 1.1920928955078125e-07  # FLT_EPSILON
+# OpenCV's oscillation test ``|d| < 0.01`` compares a float with a double. For a float32 ``d`` it is
+# ``d <= float32(0.01)`` (float32(0.01) < 0.01 and the next float32 is > 0.01); for float64 ``d``
+# it is ``d <= nextafter(0.01, 0)``. Both as ``<=`` on the tensor's own dtype: no float64 copy.
+_OSC = {torch.float32: 0.009999999776482582, torch.float64: math.nextafter(0.01, 0.0)}
 
 ImageOrPyramid = Union[torch.Tensor, Pyramid]
 
@@ -73,157 +93,212 @@ def _ste(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
     return hard
 
 
-def _fixed_weights(frac: torch.Tensor) -> torch.Tensor:
-    """OpenCV's integer bilinear weights ``(M, 4)`` (float32 holding integers): ``iw00 =
-    cvRound((1-a)(1-b) 2^14)``, ``iw01 = cvRound(a(1-b) 2^14)``, ``iw10 = cvRound((1-a)b 2^14)``
-    evaluated in float32 (half-even, as ``torch.round``), ``iw11 = 2^14 - others``."""
-    f = frac.detach().float()
-    xs = torch.stack([1 - f, f], dim=2)  # (M, axis, [1-t, t])
-    w = (xs[:, 1, :2, None] * xs[:, 0, None, :]).reshape(-1, 4)[:, :3]
-    iw = torch.round(w * float(1 << _W_BITS))
-    return torch.cat([iw, float(1 << _W_BITS) - iw.sum(1, keepdim=True)], dim=1)
+def _soft_weights(frac: torch.Tensor) -> torch.Tensor:
+    """``(2, m)`` fractional offsets ``(a, b)`` -> ``(4, m)`` float weights ``w00, w01, w10, w11``
+    (``w00 = (1-a)(1-b)``, ``w01 = a(1-b)``, ``w10 = (1-a)b``, ``w11 = ab``): row ``2i + j`` is
+    ``ys[i] * xs[j]`` with ``xs = (1-a, a)``, ``ys = (1-b, b)``."""
+    t = torch.stack((1 - frac, frac))  # (2: [1-t, t], 2: axis, m)
+    return (t[:, 1].unsqueeze(1) * t[:, 0].unsqueeze(0)).reshape(4, -1)
 
 
-def _bilinear_weights(frac: torch.Tensor, fixed: bool) -> torch.Tensor:
-    """``(M, 2)`` fractional offsets ``(a, b)`` -> ``(M, 4)`` weights ``w00, w01, w10, w11``
-    (``w00 = (1-a)(1-b)``, ``w01 = a(1-b)``, ``w10 = (1-a)b``, ``w11 = ab``).
+def _fixed_weights(frac: torch.Tensor, k: dict, scale: str = "iw") -> torch.Tensor:
+    """OpenCV's integer bilinear weights ``(4, m)`` float32: ``iw00 = cvRound((1-a)(1-b) 2^14)``,
+    ``iw01 = cvRound(a(1-b) 2^14)``, ``iw10 = cvRound((1-a)b 2^14)`` evaluated in float32 (half-even,
+    as ``torch.round``), ``iw11 = 2^14 - others``; times ``2^-9`` with ``scale="iw9"``.
 
-    Fixed point: the values are OpenCV's ``iw / 2^14`` (exact in float), the gradient that of the
-    float weights (straight-through).
+    Few ops (this runs every iteration): ``t = 2^7 (1-f), 2^7 f`` in one ``addcmul`` (scaling by a
+    power of two commutes with float rounding, so ``round(2^7(1-a) * 2^7(1-b))`` is exactly
+    OpenCV's ``cvRound((1-a)(1-b) 2^14)``), the outer product through two strided views, and
+    ``iw11`` plus the scale in one ``addmm`` (integers: exact)."""
+    f = frac.detach()
+    if f.dtype != torch.float32:
+        f = f.float()
+    m = f.shape[-1]
+    t = torch.addcmul(k["w_off"], f.unsqueeze(1), k["w_sgn"])  # (axis, [1-f, f], m) x 2^7
+    (s0, s1, s2), o = t.stride(), t.storage_offset()
+    xs = t.as_strided((1, 2, m), (0, s1, s2), o)  # t[0]
+    ys = t.as_strided((2, 1, m), (s1, 0, s2), o + s0)  # t[1]
+    iw = torch.round(ys * xs).reshape(4, m)  # rows: ys[i] xs[j] at 2i + j
+    return torch.addmm(k[scale + "_b"], k[scale + "_C"], iw)
+
+
+def _interp(P: torch.Tensor, w: torch.Tensor, init: torch.Tensor | None = None) -> torch.Tensor:
+    """Bilinear windows from patches: ``P`` ``(..., ph, pw, m)`` (points last: every weight
+    broadcasts along the contiguous axis), ``w`` ``(4, m)`` -> ``(..., ph-1, pw-1, m)``
+    ``[init +] w00 P[r, c] + w01 P[r, c+1] + w10 P[r+1, c] + w11 P[r+1, c+1]``, summed in that order.
+    Exact in fixed point whatever the order (all terms are integers / powers of two)."""
+    w0, w1, w2, w3 = w.unbind(0)
+    if P.requires_grad or w.requires_grad or (init is not None and init.requires_grad):
+        P00, P01 = P[..., :-1, :-1, :], P[..., :-1, 1:, :]
+        P10, P11 = P[..., 1:, :-1, :], P[..., 1:, 1:, :]
+        out = P00 * w0 if init is None else torch.addcmul(init, P00, w0)
+        out = torch.addcmul(out, P01, w1)
+        out = torch.addcmul(out, P10, w2)
+        return torch.addcmul(out, P11, w3)
+    # the four shifted taps as strided views (one op each instead of two slices), in place
+    size = P.shape[:-3] + (P.shape[-3] - 1, P.shape[-2] - 1, P.shape[-1])
+    st, o = P.stride(), P.storage_offset()
+    out = torch.mul(P.as_strided(size, st, o), w0) if init is None else torch.addcmul(
+        init, P.as_strided(size, st, o), w0)
+    out.addcmul_(P.as_strided(size, st, o + st[-2]), w1)
+    out.addcmul_(P.as_strided(size, st, o + st[-3]), w2)
+    return out.addcmul_(P.as_strided(size, st, o + st[-3] + st[-2]), w3)
+
+
+@functools.lru_cache(maxsize=128)
+def _level_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, idx_dtype: torch.dtype, device):
+    """Per level-size constants (cached: they depend on sizes only).
+
+    Window rows/columns are addressed in *padded* coordinates ``r = y + wh``, ``c = x + ww``
+    (``y in [-wh, H + wh)``): ``rowtab[r]`` = ``reflect101(y) * W``, ``coltab[c]`` = ``reflect101(x)``
+    — the BORDER_REFLECT_101 padding of ``buildOpticalFlowPyramid`` as index look-up tables, so no
+    padded copy of any image is made; ``rowin``/``colin`` are 1 inside the image and 0 outside
+    (the derivative windows see zeros there: ``calc()`` pads ``derivI`` with BORDER_CONSTANT).
+    ``spanm1 = (W + ww - 1, H + wh - 1)``: the largest allowed window origin + ``win``.
     """
-    xs = torch.stack([1 - frac, frac], dim=2)
-    w = (xs[:, 1, :, None] * xs[:, 0, None, :]).reshape(-1, 4)
-    if not fixed:
-        return w
-    return _ste(w, (_fixed_weights(frac) * (1.0 / (1 << _W_BITS))).to(w.dtype))
+    ry = _reflect101_index(H, wh, wh, device)
+    rx = _reflect101_index(W, ww, ww, device)
+    rowtab = (ry * W).to(idx_dtype)
+    coltab = rx.to(idx_dtype)
+    yy = torch.arange(-wh, H + wh, device=device)
+    xx = torch.arange(-ww, W + ww, device=device)
+    rowin = ((yy >= 0) & (yy < H)).to(dtype)
+    colin = ((xx >= 0) & (xx < W)).to(dtype)
+    spanm1 = torch.tensor([[W + ww - 1], [H + wh - 1]], dtype=dtype, device=device)
+    return rowtab, coltab, rowin, colin, spanm1
 
 
-def _interp_flat(pf: torch.Tensor, w: torch.Tensor, pw: int, init: float | None = None) -> torch.Tensor:
-    """Bilinear windows on flattened patches.
+@functools.lru_cache(maxsize=32)
+def _win_consts(ww: int, wh: int, dtype: torch.dtype, device):
+    """Small per-call constants as tensors (an op with a Python scalar costs more than the op)."""
+    def t(v, dt=dtype):
+        return torch.tensor(v, dtype=dt, device=device)
 
-    ``pf``: ``(..., M, (wh+1) * pw)`` row-major ``(wh+1) x pw`` patches (``pw = ww + 1``); ``w``:
-    ``(M, 4)`` weights. Returns ``(..., M, K)`` with ``K = wh * pw - 1``: entry ``q = r * pw + c`` is
-    the window value at row ``r``, column ``c`` for ``c < ww``; ``c == ww`` is a junk column (it mixes
-    two rows) that callers neutralise by zero derivative weights. Working on the flat patch turns the
-    four shifted terms into contiguous slices (about twice as fast as 2-D slicing). Exact in fixed
-    point whatever the summation order. ``init`` is added first (OpenCV's rounding constant).
-    """
-    K = pf.shape[-1] - pw - 1
-    wv = w.t().unsqueeze(-1)  # (4, M, 1)
-    if pf.is_floating_point():
-        if init is None:
-            out = pf[..., :K] * wv[0]
-        else:
-            out = torch.addcmul(torch.full((), init, dtype=pf.dtype, device=pf.device), pf[..., :K], wv[0])
-        out = torch.addcmul(out, pf[..., 1:K + 1], wv[1])
-        out = torch.addcmul(out, pf[..., pw:pw + K], wv[2])
-        return torch.addcmul(out, pf[..., pw + 1:pw + 1 + K], wv[3])
-    out = pf[..., :K] * wv[0]
-    if init is not None:
-        out += int(init)
-    out += pf[..., 1:K + 1] * wv[1]
-    out += pf[..., pw:pw + K] * wv[2]
-    out += pf[..., pw + 1:pw + 1 + K] * wv[3]
-    return out
+    f32 = torch.float32
+    C = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [-1, -1, -1, 0]], dtype=f32, device=device)
+    b = torch.tensor([[0.0], [0.0], [0.0], [_W_ONE]], dtype=f32, device=device)
+    return dict(
+        w_off=t([[[128.0], [0.0]]], f32),
+        w_sgn=t([[[-128.0], [128.0]]], f32),
+        iw_C=C, iw_b=b, iw9_C=C * 2.0**-9, iw9_b=b * 2.0**-9,
+        half=t([[(ww - 1) * 0.5], [(wh - 1) * 0.5]]),
+        win=t([[float(ww)], [float(wh)]]),
+        zero=t(0.0),
+        c05=t(0.5),
+        i8192=torch.tensor(1 << (_W_BITS - 1), dtype=torch.int32, device=device),
+        ar_ph=torch.arange(wh + 1, device=device).view(-1, 1),
+        ar_pw=torch.arange(ww + 1, device=device).view(-1, 1),
+    )
 
 
 class _Level:
-    """Padded, flattened images of one pyramid level (all streams) and the patch geometry."""
+    """Flattened images of one pyramid level (all streams) and the window geometry.
 
-    def __init__(self, I, grads, J, win, batch_of_lane):
+    Windows are gathered straight from the unpadded images through reflect-101 index tables (one
+    ``index_select`` per window set, no padded copies). Layout: points *last* — a window set is
+    ``(rows, cols, m)`` — so every per-point weight broadcasts along the contiguous axis (several
+    times faster on CPU than a per-row broadcast) and the shifted bilinear taps are plain slices.
+    """
+
+    def __init__(self, I, grads, J, win, dtype):
         ww, wh = win
         B, _, H, W = J.shape
-        self.H, self.W, self.ww, self.wh = H, W, ww, wh
+        self.H, self.W, self.B, self.HW = H, W, B, H * W
+        self.ww, self.wh, self.ph, self.pw = ww, wh, wh + 1, ww + 1
+        idx_dtype = torch.int32 if 2 * B * H * W < 2**31 else torch.int64
+        self.idx_dtype = idx_dtype
+        (self.rowtab, self.coltab, self.rowin, self.colin,
+         self.spanm1) = _level_tables(H, W, ww, wh, dtype, idx_dtype, J.device)
+        self.J = J.reshape(-1)
+        # next image: padded once (BORDER_REFLECT_101, as buildOpticalFlowPyramid) so that every
+        # iteration gathers whole window rows through an overlapping view (no per-element index)
         Hp, Wp = H + 2 * wh, W + 2 * ww
-        self.Wp, self.pw, self.ph = Wp, ww + 1, wh + 1
-        dev = J.device
-        # next image: (B*Hp*Wp,), BORDER_REFLECT_101 padding as buildOpticalFlowPyramid
-        self.J = pad_reflect101(J, wh, ww).reshape(-1)
-        # template sources, each flat (B*Hp*Wp,): grey levels (REFLECT_101) and derivatives computed on
-        # the unpadded level with the border filled with zeros (calc() pads derivI BORDER_CONSTANT)
-        self.IG = [pad_reflect101(I, wh, ww).reshape(-1)] + [
-            F.pad(grads[:, c:c + 1], (ww, ww, wh, wh)).reshape(-1) for c in range(2)]
-        dy = torch.arange(self.ph, device=dev)
-        dx = torch.arange(self.pw, device=dev)
-        self.offs = (dy[:, None] * Wp + dx[None, :]).reshape(-1)
-        self.lane_base = batch_of_lane * (Hp * Wp)
-        self.K = wh * self.pw - 1
-        # 0 on the junk column of the flat window layout (see _interp_flat)
-        self.colmask = (torch.arange(self.K, device=dev) % self.pw < ww).to(J.dtype)
-
-    def inside(self, ip: torch.Tensor) -> torch.Tensor:
-        x, y = ip[:, 0], ip[:, 1]
-        return (x >= -self.ww) & (x < self.W) & (y >= -self.wh) & (y < self.H)
-
-    def base(self, ip: torch.Tensor, lane_base: torch.Tensor) -> torch.Tensor:
-        # clamp so that lanes that will be masked out still read in-bounds memory
-        x = ip[:, 0].clamp(-self.ww, self.W - 1).long() + self.ww
-        y = ip[:, 1].clamp(-self.wh, self.H - 1).long() + self.wh
-        return lane_base + y * self.Wp + x
-
-    def patches(self, flat: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
-        """``(L,)`` flat padded image, ``(m,)`` top-left indices -> ``(m, ph*pw)`` patches."""
-        if flat.requires_grad:  # differentiable gather through an explicit (m, ph*pw) index
-            idx = (base[:, None] + self.offs[None, :]).reshape(-1)
-            return flat.index_select(0, idx).view(base.shape[0], -1)
-        return _window_view(flat, self.Wp, self.ph, self.pw).index_select(0, base).flatten(-2)
+        self.Wp, self.HWp = Wp, Hp * Wp
+        self.Jp = Jp = pad_reflect101(J, wh, ww).reshape(-1)
+        self.Jview = Jp.as_strided((Jp.numel() - wh * Wp - ww, wh + 1, ww + 1), (1, Wp, 1))
+        self.jstr = torch.tensor([[1], [Wp]], device=J.device)  # int64: exact for any image size
+        dy, dx = torch.arange(wh + 1, device=J.device), torch.arange(ww + 1, device=J.device)
+        self.offs = (dy[:, None] * Wp + dx[None, :]).unsqueeze(-1)
+        self.I = I.reshape(-1)
+        self.G = grads.reshape(-1)  # (B, 2, H, W) flat: channel c of stream b at (2b + c) * HW
+        self.choff = torch.tensor([0, H * W], dtype=idx_dtype, device=J.device).view(2, 1, 1, 1)
 
 
-def _window_view(flat: torch.Tensor, Wp: int, ph: int, pw: int) -> torch.Tensor:
-    """``(n, ph, pw)`` overlapping view of a 1-D flat padded image: entry ``s`` is the patch whose
-    top-left element is flat index ``s`` (no copy; gathering whole patches needs no big index)."""
-    n = flat.shape[0] - ((ph - 1) * Wp + pw - 1)
-    return flat.as_strided((n, ph, pw), (flat.stride(0), Wp * flat.stride(0), flat.stride(0)), flat.storage_offset())
+def _gather(view: torch.Tensor, flat: torch.Tensor, base: torch.Tensor, offs: torch.Tensor) -> torch.Tensor:
+    """Windows with top-left flat indices ``base`` (m,) as ``(*window, m)``: through the window view
+    (one copy of whole patches + one transposing copy), or, when ``flat`` needs a gradient, through
+    an explicit differentiable index ``offs + base``."""
+    if flat.requires_grad:
+        idx = offs + base
+        return flat.index_select(0, idx.view(-1)).view(idx.shape)
+    m = base.shape[0]
+    step = max(32, _GATHER_BLOCK // max(1, math.prod(view.shape[1:])))
+    if m <= step:
+        return view.index_select(0, base).movedim(0, -1).contiguous()
+    # the transpose to points-last is cache-hostile for many points: do it in blocks that stay in
+    # cache (measured 2-3x faster for 1000 points than one transposing copy)
+    out = flat.new_empty(view.shape[1:] + (m,))
+    for s0 in range(0, m, step):
+        blk = view.index_select(0, base[s0:s0 + step])
+        out[..., s0:s0 + blk.shape[0]].copy_(blk.movedim(0, -1))
+    return out
 
 
-def _lk_step(p, o, pd, act, iv, g, a12, adiag, dinv, lane_base, J, jview, offs, half, lo, hi, strides,
-             pw: int, first: bool, fixed: bool, eps2: float):
-    """One LK iteration for a set of ``m`` lanes (pure tensor function; ``torch.compile``-able).
+_GATHER_BLOCK = 1 << 16  # elements per transposed block (256 KiB of float32)
 
-    ``p``: (m, 2) window origins (OpenCV's local ``nextPt``), ``o``: (m, 2) stored results
-    (``nextPts``), ``pd``: previous deltas, ``act``: lanes still iterating; ``iv`` (m, K) template
-    grey levels x32, ``g`` (m, 2, K) template derivatives (0 on the junk column), ``a12`` (m, 1),
-    ``adiag`` (m, 2) = ``(A22, A11)``, ``dinv`` (m, 1) = ``1/det``. ``lo``/``hi``: allowed window
-    origins ``[-win, size)``; ``strides``: ``(1, Wp)``. Returns the updated ``p, o, pd``, the lanes
-    that keep iterating and the lanes that left the image in this iteration.
+
+def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k: dict, spanm1,
+             first: bool, fixed: bool, eps2: float, osc_thr: float):
+    """One LK iteration for ``m`` lanes (pure tensor function; ``torch.compile``-able).
+
+    ``p``: (2, m) window origins (OpenCV's local ``nextPt``), ``pd``: previous deltas, ``act``: lanes
+    still iterating; ``iv`` (wh, ww, m) template grey levels x32, ``g`` (2, wh, ww, m) template
+    derivatives, ``a12`` (m,), ``adiag`` (2, m) = ``(A22, A11)``, ``dinv`` (m,) = ``1/det``; ``lane``
+    (m,) stream offsets into the flat *padded* next image ``J`` (None for one stream), ``jview`` its
+    overlapping ``(ph, pw)`` window view, ``jstr`` (2, 1) = ``(1, Wp)``, ``offs`` ``(ph, pw, 1)`` the
+    window's flat offsets (used when ``J`` needs a gradient), ``k`` constants (:func:`_win_consts`), ``spanm1`` (2, 1): allowed
+    window origins are ``[-win, size)``. Returns the updated ``p, pd``, the lanes that keep iterating, the lanes that
+    moved in this iteration (active and inside) and those that stopped by oscillation (None at j = 0).
     """
+    c05 = k["c05"]
     ip = torch.floor(p.detach())
-    inb = ((ip >= lo) & (ip < hi)).all(1)
-    lost = act & ~inb
-    act = act & inb
-    w = _bilinear_weights(p - ip, fixed) * 32.0  # x32: grey levels in 1/32 units (exact scaling)
-    # clamp so that lanes that are masked out still read in-bounds memory
-    base = lane_base + ((torch.minimum(torch.maximum(ip, lo), hi - 1) - lo) * strides).sum(1).long()
-    if jview is not None:  # overlapping-window view: gathers whole patches, no (m, K) index
-        jp = jview.index_select(0, base).flatten(1)
+    u = ip + k["win"]
+    # clamp so that lanes that are masked out still read in-bounds memory; unchanged <=> inside
+    uc = torch.clamp(u, min=k["zero"], max=spanm1)
+    moved = act & (uc == u).all(0)
+    # top-left flat index in the padded next image; whole (ph, pw) patches, points last
+    base = (uc.long() * jstr).sum(0)
+    if lane is not None:
+        base = base + lane
+    jp = _gather(jview, J, base, offs)
+    frac = p - ip
+    if fixed:  # OpenCV: CV_DESCALE(sum iw J, W_BITS1 - 5) = floor(sum iw J / 2^9 + 1/2), exact in float
+        w = _fixed_weights(frac, k, "iw9")
+        if w.dtype != p.dtype:
+            w = w.to(p.dtype)
+        if frac.requires_grad or jp.requires_grad:  # straight-through: gradient of the float version
+            jval = _interp(jp, _ste(_soft_weights(frac) * 32.0, w), c05)
+            jval = _ste(jval - 0.5, torch.floor(jval))
+        else:
+            jval = _interp(jp, w, c05).floor_()
     else:
-        jp = J.index_select(0, (base[:, None] + offs[None, :]).reshape(-1)).view(base.shape[0], -1)
-    if fixed:  # OpenCV: CV_DESCALE(sum, W_BITS1 - 5) = floor(sum / 2^9 + 1/2)
-        jval = _interp_flat(jp, w, pw, 0.5)
-        jval = _ste(jval - 0.5, torch.floor(jval))
-    else:
-        jval = _interp_flat(jp, w, pw)
-    b = ((jval - iv).unsqueeze(1) * g).sum(2) * _FLT_SCALE  # (m, 2): b1, b2
+        jval = _interp(jp, _soft_weights(frac) * 32.0)  # x32: grey levels in 1/32 units (exact scaling)
+    diff = jval - iv
+    b = (g * diff).sum((1, 2)) * _FLT_SCALE  # (2, m): b1, b2
     # OpenCV: delta = ((A12 b2 - A22 b1) D, (A12 b1 - A11 b2) D), same float operation order
-    delta = (a12 * b.flip(1) - adiag * b) * dinv
-    p_new = p + delta
-    o_new = p_new + half
+    delta = (a12 * b.flip(0) - adiag * b) * dinv
     dd = delta.detach().double()
-    conv = (dd * dd).sum(1) <= eps2  # OpenCV: delta.ddot(delta) <= epsilon^2 in double
-    still = act & ~conv
+    still = moved & ((dd * dd).sum(0) > eps2)  # OpenCV: stop when delta.ddot(delta) <= epsilon^2 (double)
+    osc = None
     if not first:
-        osc = still & ((delta.detach() + pd.detach()).double().abs() < 0.01).all(1)
-        o_new = torch.where(osc[:, None], o_new - delta * 0.5, o_new)
+        osc = still & ((delta.detach() + pd.detach()).abs() <= osc_thr).all(0)
         still = still & ~osc
-    a2 = act[:, None]
-    return torch.where(a2, p_new, p), torch.where(a2, o_new, o), torch.where(a2, delta, pd), still, lost
+    m2 = moved.unsqueeze(0)
+    return torch.where(m2, p + delta, p), torch.where(m2, delta, pd), still, moved, osc
 
 
-# indirection so that a benchmark / user can swap in ``torch.compile(_lk_step, dynamic=True)``;
-# the compiled kernel gathers through an explicit index (Inductor fuses it into the arithmetic; an
-# overlapping as_strided view would be materialised)
+# indirection so that a benchmark / user can swap in ``torch.compile(_lk_step, dynamic=True)``
 _STEP = [_lk_step]
-_USE_VIEW = [True]
 
 
 def compile_step(enable: bool = True, **compile_kwargs) -> None:
@@ -231,35 +306,51 @@ def compile_step(enable: bool = True, **compile_kwargs) -> None:
     if enable:
         compile_kwargs.setdefault("dynamic", True)
         _STEP[0] = torch.compile(_lk_step, **compile_kwargs)
-        _USE_VIEW[0] = False
     else:
         _STEP[0] = _lk_step
-        _USE_VIEW[0] = True
 
 
-def _template(lv: _Level, pp: torch.Tensor, fixed: bool, dtype):
-    """Window of the previous image at ``pp`` (window origins, (M, 2)): grey levels x32 ``(M, K)``
-    and Scharr derivatives ``(M, 2, K)`` (junk column zeroed), as OpenCV computes them."""
-    ip = torch.floor(pp.detach())
-    frac = pp - ip
-    base = lv.base(ip, lv.lane_base)
-    patches = [lv.patches(c, base) for c in lv.IG]  # I, Ix, Iy: (M, ph*pw) each
-    need_soft = not fixed or any(c.requires_grad for c in lv.IG) or frac.requires_grad
+def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Tensor | None, fixed: bool,
+              dtype, k: dict, sync: bool = True):
+    """Windows of the previous image for ``m`` lanes with padded origins ``ucl`` (``(2, m)``),
+    fractional offsets ``frac`` and stream indices ``lanes``: grey levels x32 ``(wh, ww, m)`` and
+    Scharr derivatives ``(2, wh, ww, m)``, as OpenCV computes them."""
+    ry = ucl[1] + k["ar_ph"]  # (ph, m) padded rows
+    rx = ucl[0] + k["ar_pw"]
+    rr = lv.rowtab.take(ry)
+    cc = lv.coltab.take(rx)
+    if lanes is None:
+        idx = rr.unsqueeze(1) + cc
+        gidx = idx + lv.choff
+    else:
+        lo = lanes.to(lv.idx_dtype) * lv.HW
+        idx = (rr + lo).unsqueeze(1) + cc
+        gidx = (rr + lo * 2).unsqueeze(1) + cc + lv.choff
+    PI = lv.I.index_select(0, idx.view(-1)).view(idx.shape)
+    PG = lv.G.index_select(0, gidx.view(-1)).view(gidx.shape)
+    # derivatives: zero where the window hangs over the image edge (BORDER_CONSTANT); with ``sync``
+    # one host sync skips the mask pass in the usual case of no window at the edge
+    if not sync or bool(((ucl < k["win"].long()) | (ucl >= lv.spanm1.long() - k["win"].long())).any()):
+        PG = PG * (lv.rowin.take(ry).unsqueeze(1) * lv.colin.take(rx))
+    need_soft = not fixed or PI.requires_grad or PG.requires_grad or frac.requires_grad
     if need_soft:
-        w = _bilinear_weights(frac, False)
-        ws = (w * 32.0, w, w)
-        vals = [_interp_flat(pc, wc, lv.pw) for pc, wc in zip(patches, ws)]
+        w = _soft_weights(frac)
+        iv, g = _interp(PI, w * 32.0), _interp(PG, w)
     if fixed:
-        iw = _fixed_weights(frac)
+        iw = _fixed_weights(frac, k)
         # grey levels: sum(I * iw) / 2^9 is exact in float32 (22 bits); OpenCV rounds half up.
-        # derivatives: sum(dI * iw) / 2^14 needs up to 26 bits, so in float32 a product can be
-        # rounded; the descaled integer can then differ by 1 when the exact value lies within ~1e-3
-        # of a half integer (rare; effect on tracked points < 1e-5 px). float64 input is exact.
-        wts = ((iw * 2.0**-9).to(dtype), (iw * 2.0**-14).to(dtype))
-        hard = [torch.floor(_interp_flat(pc.detach(), wts[min(k, 1)], lv.pw, 0.5)) for k, pc in enumerate(patches)]
-        vals = [_ste(s, h) for s, h in zip(vals, hard)] if need_soft else hard
-    g = torch.stack([vals[1] * lv.colmask, vals[2] * lv.colmask], dim=1)
-    return vals[0], g
+        # derivatives: sum(dI * iw) needs up to 26 bits: float64, exact, so the descaled integer is
+        # OpenCV's CV_DESCALE(., 14) exactly.
+        hiv = _interp(PI.detach(), (iw * 2.0**-9).to(dtype), k["c05"]).floor_()
+        if dtype == torch.float64:
+            hg = _interp(PG.detach(), iw.double() * 2.0**-14, k["c05"]).floor_()
+        else:  # int32 (exact, cheaper than float64): CV_DESCALE(s, 14) = (s + 2^13) >> 14
+            hg = _interp(PG.detach().int(), iw.int(), k["i8192"]).bitwise_right_shift_(_W_BITS).to(dtype)
+        if need_soft:
+            iv, g = _ste(iv, hiv), _ste(g, hg)
+        else:
+            iv, g = hiv, hg
+    return iv, g
 
 
 def _lk_impl(
@@ -280,75 +371,126 @@ def _lk_impl(
     M = B * N
     dtype, dev = pts.dtype, pts.device
     ww, wh = win
-    half = torch.tensor([(ww - 1) * 0.5, (wh - 1) * 0.5], dtype=dtype, device=dev)
-    p0 = pts.reshape(M, 2)
-    status = valid.reshape(M).clone()
-    lanes = torch.arange(B, device=dev).repeat_interleave(N)
+    k = _win_consts(ww, wh, dtype, dev)
+    half, winv, zero = k["half"], k["win"], k["zero"]
+    osc_thr = _OSC.get(dtype, 0.01)
+    p0 = pts.reshape(M, 2).t().contiguous()  # (2, M): points last throughout
+    valid = valid.reshape(M)
+    status = valid
+    lanes_all = torch.arange(B, device=dev).repeat_interleave(N) if B > 1 else None
     # OpenCV's nextPts[i] (window centre) at the current level's scale
-    out = (p0 if init is None else init.reshape(M, 2)) * (1.0 / (1 << top))
+    out = (p0 if init is None else init.reshape(M, 2).t().contiguous()) * (1.0 / (1 << top))
 
     for level in range(top, -1, -1):
         if level != top:
             out = out * 2.0
         lv = _Level(prev.levels[level].to(dtype), prev.grads[level].to(dtype), nxt.levels[level].to(dtype),
-                    win, lanes)
+                    win, dtype)
 
-        # ---- template: previous image window, derivatives, gradient matrix (once per level)
+        # ---- lanes processed at this level: window origin inside [-win, size)
         pp = p0 * (1.0 / (1 << level)) - half
-        proc = valid.reshape(M) & lv.inside(torch.floor(pp.detach()))
+        ip = torch.floor(pp.detach())
+        u = ip + winv
+        uc = torch.clamp(u, min=zero, max=lv.spanm1)
+        proc = valid & (uc == u).all(0)
         if level == 0:
             status = status & proc
-        ival, g = _template(lv, pp, fixed, dtype)
-        a11 = (g[:, 0] * g[:, 0]).sum(1) * _FLT_SCALE
-        a12 = (g[:, 0] * g[:, 1]).sum(1) * _FLT_SCALE
-        a22 = (g[:, 1] * g[:, 1]).sum(1) * _FLT_SCALE
+        frac = pp - ip
+        if early_exit:
+            ws = proc.nonzero().squeeze(1)  # host sync: template and iterations on these lanes only
+            if ws.numel() == 0:
+                continue
+            ucl = uc.index_select(1, ws).long()
+            frac = frac.index_select(1, ws)
+            lanes = None if lanes_all is None else lanes_all.index_select(0, ws)
+            o0 = out.index_select(1, ws)
+            act = torch.ones_like(ws, dtype=torch.bool)
+        else:
+            # all lanes, masked; lanes not processed get origin 0 so that nothing reads out of
+            # bounds even for non-finite input (they never move: their result stays ``out``)
+            ws, lanes, o0, act = None, lanes_all, out, proc
+            ucl = torch.where(proc, uc, zero).long()
+
+        # ---- template: previous image window, derivatives, gradient matrix (once per level)
+        iv, g = _template(lv, ucl, frac, lanes, fixed, dtype, k, sync=early_exit)
+        A = (g.unsqueeze(1) * g.unsqueeze(0)).sum((2, 3)) * _FLT_SCALE  # (2, 2, m)
+        a11, a12, _, a22 = A.view(4, -1).unbind(0)
+        Ad = A.detach()
         with torch.no_grad():  # discrete decision; sqrt at 0 would poison gradients
-            d11, d12, d22 = a11.detach(), a12.detach(), a22.detach()
+            d11, d12, _, d22 = Ad.view(4, -1).unbind(0)
             det = d11 * d22 - d12 * d12
-            eig = (d22 + d11 - torch.sqrt((d11 - d22) * (d11 - d22) + 4.0 * d12 * d12)) / (2.0 * ww * wh)
-            ok = proc & (eig >= min_eig) & (det >= _FLT_EPSILON)
-        if level == 0:
-            status = status & ok
-        det = a11 * a22 - a12 * a12
+            dd = d11 - d22
+            eig = (d22 + d11 - torch.sqrt(dd * dd + 4.0 * d12 * d12)) / (2.0 * ww * wh)
+            ok = act & (eig >= min_eig) & (det >= _FLT_EPSILON)
+        if A.requires_grad:
+            det = a11 * a22 - a12 * a12
         # keep masked lanes finite: torch.where differentiates both branches
         dinv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+        adiag = torch.stack((a22, a11))
 
         # ---- iterations: only the next image is sampled
-        amat = torch.stack([a12, a22, a11, dinv], dim=1)  # (M, 4): A12, (A22, A11), 1/det
-        lo = torch.tensor([-ww, -wh], dtype=dtype, device=dev)
-        hi = torch.tensor([lv.W, lv.H], dtype=dtype, device=dev)
-        strides = torch.tensor([1, lv.Wp], dtype=dtype, device=dev)
-        jv = _window_view(lv.J, lv.Wp, lv.ph, lv.pw) if _USE_VIEW[0] and not lv.J.requires_grad else None
-        if early_exit:
-            # working set = lanes still iterating; re-compacted (template rows gathered again) only
-            # when it has shrunk to half, so the copy cost is amortised over the iterations
-            ws = ok.nonzero().squeeze(1)  # host sync
-        else:
-            ws = None  # all lanes, masked; no host sync
-        npt = out - half  # OpenCV's local nextPt (window origin)
-        p, o, iv, gw, aw, bw, act = (t if ws is None else t.index_select(0, ws)
-                                     for t in (npt, out, ival, g, amat, lv.lane_base, ok))
+        fail = ~ok if level == 0 else None  # level 0: status 0 for failed eigenvalue test / lost lanes
+        act = ok
+        lane = None if lanes is None else lanes * lv.HWp
+        p = o0 - half  # OpenCV's local nextPt (window origin)
+        if ws is None:
+            p = torch.where(proc, p, zero)
         pd = torch.zeros_like(p)
+        moved = oscf = None
+        st = (lv.Jp, lv.Jview, lv.jstr, lv.offs, k, lv.spanm1)
         for j in range(max_iters):
-            if ws is not None:
+            if ws is not None and j > 0:
                 n_act = int(act.sum())  # host sync (early exit / compaction)
                 if n_act == 0:
                     break
                 if 2 * n_act <= act.shape[0]:
-                    out = out.index_put((ws,), o)
+                    # write the lanes that stopped back, continue on the active ones: the copy cost
+                    # is amortised over the iterations (the set at least halves each time)
+                    out, status = _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half)
                     keep = act.nonzero().squeeze(1)
                     ws = ws.index_select(0, keep)
-                    p, o, pd, iv, gw, aw, bw = (t.index_select(0, keep) for t in (p, o, pd, iv, gw, aw, bw))
+                    p, pd, o0, iv, g, a12, adiag, dinv = (
+                        t.index_select(-1, keep) for t in (p, pd, o0, iv, g, a12, adiag, dinv))
+                    lane = None if lane is None else lane.index_select(0, keep)
                     act = torch.ones_like(keep, dtype=torch.bool)
-            p, o, pd, act, gone = _STEP[0](p, o, pd, act, iv, gw, aw[:, :1], aw[:, 1:3], aw[:, 3:], bw, lv.J, jv,
-                                          lv.offs, half, lo, hi, strides, lv.pw, j == 0, fixed, eps2)
-            if level == 0:
-                if ws is None:
-                    status = status & ~gone
-                elif bool(gone.any()):
-                    status = status.index_put((ws[gone],), torch.zeros_like(ws[gone], dtype=torch.bool))
-        out = o if ws is None else out.index_put((ws,), o)
-    return out.reshape(B, N, 2), status.reshape(B, N)
+                    moved = act
+                    oscf = torch.zeros_like(act)
+                    fail = None if fail is None else torch.zeros_like(act)
+            act_in = act
+            p, pd, act, mv, osc = _STEP[0](p, pd, act, iv, g, a12, adiag, dinv, lane, *st,
+                                           j == 0, fixed, eps2, osc_thr)
+            if j == 0:
+                moved = mv  # a lane moves at j > 0 only if it moved at j = 0
+                oscf = torch.zeros_like(mv)
+            if osc is not None:
+                oscf = oscf | osc
+            if fail is not None:
+                fail = fail | (act_in & ~mv)  # left the image
+        if moved is not None:
+            out, status = _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half)
+        elif fail is not None:
+            out, status = _write_back(out, status, ws, o0, p, pd, None, None, fail, half)
+    return out.t().reshape(B, N, 2), status.reshape(B, N)
+
+
+def _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half):
+    """Results of the lanes ``ws`` (all lanes when None) into the level-wide ``out`` (2, M) and
+    ``status``: OpenCV's stored ``nextPts = nextPt + halfWin`` for lanes that moved (minus half the
+    last step after an oscillation), the level's starting value otherwise."""
+    if moved is not None:
+        o = torch.where(moved, p + half, o0)
+        o = torch.where(oscf, o - pd * 0.5, o)
+    else:
+        o = o0
+    if ws is None:
+        out = o
+        if fail is not None:
+            status = status & ~fail
+    else:
+        out = out.index_copy(1, ws, o)
+        if fail is not None:
+            status = status.index_copy(0, ws, status.index_select(0, ws) & ~fail)
+    return out, status
 
 
 def _as_pyramid(x: ImageOrPyramid, name: str, levels: int, need_grads: bool) -> Pyramid:
@@ -459,39 +601,44 @@ def track_lk(
 
         fixed_point = _is8(prev) and _is8(next)
     levels = max(max_level, fb_level if forward_backward else 0)
-    P = _as_pyramid(prev, "prev", levels, need_grads=True)
-    Q = _as_pyramid(next, "next", levels, need_grads=forward_backward)
-    for name, pyr in (("prev", P), ("next", Q)):
-        if pyr.batch != pts.shape[0]:
-            raise ValueError(f"{name}: batch {pyr.batch} does not match pts batch {pts.shape[0]}")
-
-    top = _effective_top(P, Q, max_level, win)
-    fb_top = _effective_top(Q, P, fb_level, win) if forward_backward else 0
-    args = (win, top, fb_top, max_iters, eps2, float(min_eig_threshold), bool(fixed_point), early_exit,
-            forward_backward, fb_use_initial_flow, float(fb_threshold))
     B, N = pts.shape[:2]
-    # streams are independent: process them in groups of <= _MAX_LANES points so that the per-level
-    # temporaries (padded images, (lanes, win^2) windows) stay cache/memory friendly; a loop over
-    # groups of streams, not over points (measured: B=64 x N=1000 in one piece was ~4x slower/point)
+    for name, x in (("prev", prev), ("next", next)):
+        nb = x.batch if isinstance(x, Pyramid) else as_image_batch(x, name).shape[0]
+        if nb != B:
+            raise ValueError(f"{name}: batch {nb} does not match pts batch {B}")
+    opts = (max_level, fb_level, win, max_iters, eps2, float(min_eig_threshold), bool(fixed_point), early_exit,
+            forward_backward, fb_use_initial_flow, float(fb_threshold), levels)
+    # streams are independent: process them in groups of <= _MAX_LANES points (pyramids included)
+    # so that the per-level temporaries ((win+1)^2 x lanes windows and their indices) stay cache
+    # friendly; a loop over groups of streams, not over points (measured on 2 cores: B=8 x N=1000 in
+    # groups of 4 streams took 2x longer than stream by stream)
     per = max(1, min(_MAX_STREAMS, _MAX_LANES // max(N, 1)))
     if B <= per:
-        return _track(P, Q, pts, valid, init_pts, *args)
+        return _track(prev, next, pts, valid, init_pts, *opts)
     outs, sts = [], []
     for s0 in range(0, B, per):
         sl = slice(s0, min(B, s0 + per))
-        o, st = _track(P.select(sl), Q.select(sl), pts[sl], valid[sl], None if init_pts is None else init_pts[sl],
-                       *args)
+        o, st = _track(_select(prev, sl), _select(next, sl), pts[sl], valid[sl],
+                       None if init_pts is None else init_pts[sl], *opts)
         outs.append(o)
         sts.append(st)
     return torch.cat(outs), torch.cat(sts)
 
 
-_MAX_LANES = 8192
+def _select(x: ImageOrPyramid, sl: slice) -> ImageOrPyramid:
+    return x.select(sl) if isinstance(x, Pyramid) else as_image_batch(x)[sl]
+
+
+_MAX_LANES = 1024
 _MAX_STREAMS = 8
 
 
-def _track(P, Q, pts, valid, init_pts, win, top, fb_top, max_iters, eps2, min_eig, fixed, early_exit,
-           forward_backward, fb_use_initial_flow, fb_threshold):
+def _track(prev, nxt, pts, valid, init_pts, max_level, fb_level, win, max_iters, eps2, min_eig, fixed,
+           early_exit, forward_backward, fb_use_initial_flow, fb_threshold, levels):
+    P = _as_pyramid(prev, "prev", levels, need_grads=True)
+    Q = _as_pyramid(nxt, "next", levels, need_grads=forward_backward)
+    top = _effective_top(P, Q, max_level, win)
+    fb_top = _effective_top(Q, P, fb_level, win) if forward_backward else 0
     out, status = _lk_impl(P, Q, pts, valid, init_pts, win, top, max_iters, eps2, min_eig, fixed, early_exit)
     if forward_backward:
         with torch.no_grad():  # a discrete acceptance test: no gradient

@@ -57,16 +57,29 @@ def pad_reflect101(x: torch.Tensor, pad_h: int, pad_w: int) -> torch.Tensor:
     return x.index_select(-2, iy).index_select(-1, ix)
 
 
-_BINOMIAL = (1.0, 4.0, 6.0, 4.0, 1.0)
+def _tap5(x: torch.Tensor, dim: int, n_out: int) -> torch.Tensor:
+    """``[1 4 6 4 1]`` along ``dim`` evaluated at every second position: ``out[i] = x[2i] + 4 x[2i+1] +
+    6 x[2i+2] + 4 x[2i+3] + x[2i+4]`` (``x`` already padded by 2), ``n_out`` outputs."""
+    a, b, c, d, e = (x.narrow(dim, k, 2 * n_out - 1)[(slice(None),) * (dim % x.dim()) + (slice(None, None, 2),)]
+                     for k in range(5))
+    if x.requires_grad:
+        return (a + e) + (b + d) * 4.0 + c * 6.0
+    # in place: 3 fewer full-size temporaries
+    out = torch.add(a, e)
+    out.add_(b, alpha=4.0).add_(d, alpha=4.0).add_(c, alpha=6.0)
+    return out
 
 
 def _pyr_down_impl(img: torch.Tensor) -> torch.Tensor:
-    # Integer kernel, divided once at the end: on integer grey levels every partial sum is an exact
-    # small integer in float32, so the result is exactly ``sum / 256`` whatever the summation order.
-    k = torch.tensor(_BINOMIAL, dtype=img.dtype, device=img.device)
-    k2 = (k[:, None] * k[None, :]).view(1, 1, 5, 5)
+    # Separable 5-tap binomial evaluated only at the kept (even) rows, then the kept columns, on
+    # strided slices of the padded image (3-4x faster than a 5x5 strided conv2d on CPU). Integer
+    # taps, one division at the end: on integer grey levels every partial sum is an exact integer
+    # (< 2^16) in float32, so the result is exactly ``sum / 256`` whatever the summation order.
+    H, W = img.shape[-2:]
     padded = pad_reflect101(img, 2, 2)
-    return F.conv2d(padded, k2, stride=2) / 256.0
+    rows = _tap5(padded, -2, (H + 1) // 2)
+    out = _tap5(rows, -1, (W + 1) // 2)
+    return out * (1.0 / 256.0)  # a power of two: exact, same as ``/ 256``
 
 
 def pyr_down(img: torch.Tensor) -> torch.Tensor:
@@ -88,15 +101,26 @@ def pyr_down(img: torch.Tensor) -> torch.Tensor:
 
 def _scharr_impl(img: torch.Tensor) -> torch.Tensor:
     # separable, on shifted slices of the padded image (about 2x faster than a 1-channel conv2d):
-    # Ix = [-1 0 1] along x of the [3 10 3] smoothing along y; Iy the transpose
+    # Ix = [-1 0 1] along x of the [3 10 3] smoothing along y; Iy the transpose. Integer taps: exact
+    # on integer grey levels whatever the order of the additions.
     H, W = img.shape[-2:]
     P = pad_reflect101(img, 1, 1)
     up, mid, down = P[..., 0:H, :], P[..., 1:H + 1, :], P[..., 2:H + 2, :]
-    s = (up + down) * 3.0 + mid * 10.0
-    d = down - up
-    ix = s[..., 2:] - s[..., :-2]
-    iy = (d[..., :-2] + d[..., 2:]) * 3.0 + d[..., 1:-1] * 10.0
-    return torch.cat([ix, iy], dim=1)
+    if img.requires_grad:
+        s = (up + down) * 3.0 + mid * 10.0
+        d = down - up
+        ix = s[..., 2:] - s[..., :-2]
+        iy = (d[..., :-2] + d[..., 2:]) * 3.0 + d[..., 1:-1] * 10.0
+        return torch.cat([ix, iy], dim=1)
+    # no autograd: write both channels straight into the output, in place (no cat, fewer passes)
+    out = img.new_empty(img.shape[:-3] + (2, H, W))
+    ix, iy = out[..., 0:1, :, :], out[..., 1:2, :, :]
+    s = torch.add(up, down).mul_(3.0).add_(mid, alpha=10.0)
+    torch.sub(s[..., 2:], s[..., :-2], out=ix)
+    d = torch.sub(down, up, out=s)  # reuse the buffer
+    torch.add(d[..., :-2], d[..., 2:], out=iy)
+    iy.mul_(3.0).add_(d[..., 1:-1], alpha=10.0)
+    return out
 
 
 def scharr_gradients(img: torch.Tensor) -> torch.Tensor:
@@ -196,7 +220,7 @@ def build_pyramid(
         level = _pyr_down_impl(level)
         if round_levels:
             # OpenCV: (sum + 128) >> 8, i.e. round half up; values are exact multiples of 1/256.
-            level = torch.floor(level + 0.5)
+            level = torch.floor(level + 0.5) if level.requires_grad else level.add_(0.5).floor_()
         levels.append(level)
     grads = [_scharr_impl(t) for t in levels] if with_gradients else None
     return Pyramid(levels, grads, bool(round_levels))

@@ -392,7 +392,9 @@ class FeatureTracker:
         return build_pyramid(img_u8, self.lk_kwargs["max_level"])
 
     def _select_pyramid(self, active: torch.Tensor, new, old):
-        if old is None:
+        # the common case (every stream processed) keeps the new pyramid as it is: no copy of all
+        # levels and gradients (one host sync to know)
+        if old is None or bool(active.all()):
             return new
         from .pyramid import Pyramid
 
