@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(VPY) -m pytest -q
 
 bench: $(STAMP)
-	$(VPY) benchmarks/bench_pipeline.py
+	$(VPY) benchmarks/bench_pipeline.py --compile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -16,12 +16,9 @@ Usage: ``python benchmarks/bench_image.py [--device cpu|cuda] [--repeat N] [--th
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +32,9 @@ sys.path.insert(0, str(REPO))
 from torch_frontend.clahe import clahe  # noqa: E402
 from torch_frontend.corners import good_features_to_track, min_eigen_response  # noqa: E402
 from torch_frontend.masks import distance_mask  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_json_atomic  # noqa: E402
 
 try:
     from torch_frontend.pyramid import build_pyramid  # noqa: E402
@@ -143,10 +143,7 @@ def main(argv=None):
             "torch_threads": torch.get_num_threads(), "opencv_threads": cv2.getNumThreads(),
             "machine": platform.machine(), "size": [W, H], "repeat": args.repeat,
             "note": "OpenCV per image in a Python loop; setMask baseline is a Python loop with cv2.circle"}
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2)
-    os.replace(tmp, out)
+    write_json_atomic(out, {"meta": meta, "rows": rows})
     print(f"\nwrote {out}")
 
 

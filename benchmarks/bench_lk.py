@@ -22,12 +22,9 @@ Usage: ``python benchmarks/bench_lk.py [--device cpu|cuda] [--repeat N] [--threa
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -42,6 +39,9 @@ sys.path.insert(0, str(REPO))
 from torch_frontend import lk as lk_mod  # noqa: E402
 from torch_frontend.lk import track_lk  # noqa: E402
 from torch_frontend.pyramid import build_pyramid  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
@@ -184,10 +184,7 @@ def main(argv=None):
                     "call; 'pyr' rows track on pyramids built beforehand; 'build' rows build one 4-level pyramid "
                     "per stream (torch: with Scharr gradients; OpenCV: with derivatives)",
             "notes": notes}
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2)
-    os.replace(tmp, out)
+    write_json_atomic(out, {"meta": meta, "rows": rows})
     print(f"\nwrote {out}")
 
 

@@ -18,12 +18,9 @@ Usage: ``python benchmarks/bench_loop_features.py [--device cpu|cuda] [--repeat 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -35,6 +32,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from torch_frontend.loop.features import brief, default_brief_pattern, fast, hamming  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 N_QUERY = 150
@@ -138,10 +138,7 @@ def main(argv=None):
             "torch_threads": torch.get_num_threads(), "opencv_threads": cv2.getNumThreads(),
             "machine": platform.machine(), "size": [W, H], "repeat": args.repeat, "n_query": N_QUERY,
             "note": "baselines per image: cv2 FAST; cv2.GaussianBlur + numpy BRIEF; cv2.batchDistance Hamming nearest (K=1)"}
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump({"meta": meta, "rows": rows}, f, indent=2)
-    os.replace(tmp, out)
+    write_json_atomic(out, {"meta": meta, "rows": rows})
     print(f"\nwrote {out}")
 
 

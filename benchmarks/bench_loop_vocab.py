@@ -23,12 +23,9 @@ Run: ``.venv/bin/python benchmarks/bench_loop_vocab.py [--train-n 100000] [--ref
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -40,6 +37,9 @@ sys.path.insert(0, str(REPO))
 
 from torch_frontend.loop.database import PlaceDatabase  # noqa: E402
 from torch_frontend.loop.vocabulary import BowVector, Vocabulary  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_json_atomic  # noqa: E402
 
 LUT8 = np.array([bin(i).count("1") for i in range(256)], np.uint8)
 
@@ -238,11 +238,7 @@ def main():
                rows=rows, vocabulary=dict(nodes=voc.num_nodes, words=voc.num_words, k=k, L=L))
     res = REPO / "benchmarks" / "results"
     res.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=res, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(out, f, indent=2)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, res / "loop_vocab.json")
+    write_json_atomic(res / "loop_vocab.json", out)
 
 
 if __name__ == "__main__":

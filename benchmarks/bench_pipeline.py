@@ -10,7 +10,7 @@ OpenCV get the same thread count (``torch.set_num_threads`` / ``cv2.setNumThread
 Usage:
     python benchmarks/bench_pipeline.py              # the standard table (B 1, 4, 16, 64; threads 1, 2)
     python benchmarks/bench_pipeline.py --quick      # B 1 and 4, threads 1 (a smoke run)
-    python benchmarks/bench_pipeline.py --compile    # also torch.compile rows (slow to compile)
+    python benchmarks/bench_pipeline.py --compile    # also torch.compile rows (B 1 and 16, 1 thread)
 
 Writes ``benchmarks/results/pipeline.json`` and ``benchmarks/results/pipeline.md`` (temp + rename),
 and a scaling plot ``benchmarks/results/pipeline_scaling.png``.
@@ -165,14 +165,6 @@ def markdown(rows, machine: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-
-
 def plot(rows, path: Path) -> None:
     try:
         import matplotlib
@@ -251,7 +243,10 @@ def main(argv=None) -> int:
     for dev in devices:
         for th in threads if dev == "cpu" else [threads[0]]:
             for compiled in modes:
-                for B in batches:
+                # compile rows: compiling costs ~1 min per process on CPU, so only threads 1 and two sizes
+                if compiled and (th != threads[0]):
+                    continue
+                for B in ([b for b in batches if b in (1, 16)] or batches[:1]) if compiled else batches:
                     n_meas = max(2, min(8, 64 // B)) if dev == "cpu" else 8
                     spec = dict(B=B, threads=th, device=dev, compiled=compiled, n_warm=4, n_meas=n_meas,
                                 skip_cv=(dev != "cpu" and B not in (1, 64)))
@@ -275,9 +270,11 @@ def main(argv=None) -> int:
     print()
     print(md)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    _atomic_write(RESULTS / "pipeline.json", json.dumps({"machine": machine, "targets": TARGETS, "rows": rows},
-                                                        indent=2).encode())
-    _atomic_write(RESULTS / "pipeline.md", md.encode())
+    sys.path.insert(0, str(HERE))
+    from _common import write_atomic, write_json_atomic
+
+    write_json_atomic(RESULTS / "pipeline.json", {"machine": machine, "targets": TARGETS, "rows": rows})
+    write_atomic(RESULTS / "pipeline.md", md.encode())
     plot(rows, RESULTS / "pipeline_scaling.png")
     return 0
 

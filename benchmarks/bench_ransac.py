@@ -18,12 +18,9 @@ Run: ``.venv/bin/python benchmarks/bench_ransac.py [--device cpu] [--rate 0.25] 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,6 +33,9 @@ sys.path.insert(0, str(REPO))
 
 from torch_frontend import ransac as _ransac  # noqa: E402
 from torch_frontend.ransac import find_fundamental  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import write_json_atomic  # noqa: E402
 
 
 def make_problems(B: int, n: int = 150, rate: float = 0.25, noise: float = 0.3, seed: int = 0):
@@ -249,10 +249,7 @@ def main() -> None:
         "machine": platform.machine(),
         "rows": rows,
     }
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=".ransac.", suffix=".json")
-    with os.fdopen(fd, "w") as f:
-        json.dump(payload, f, indent=2)
-    os.replace(tmp, out)
+    write_json_atomic(out, payload)
     print(f"\nwrote {out}")
 
 
