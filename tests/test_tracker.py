@@ -439,3 +439,14 @@ def test_inactive_stream_is_left_untouched(mode):
         else:
             assert not bool(f.valid[1].any()) and not bool(f.published[1])
     assert int(pair.state.next_id[1]) == int(single.state.next_id[0])
+
+
+def test_fusion_uses_the_actual_image_size():
+    """VINS-Fusion tracks images of any size (the config's image_width/height are the estimator's)."""
+    cfg = dataclasses.replace(tf.load_config(REPO / "configs" / "euroc_mono_mei.yaml"), num_of_cam=1, camera1=None)
+    tr = FeatureTracker(cfg, mode="fusion")
+    crop = [img[:400, :640] for _, img in _euroc_sequence(3)]
+    for k, img in enumerate(crop):
+        f = tr.track(torch.from_numpy(np.ascontiguousarray(img))[None, None], [0.05 * k])
+    uv = f.uv[0][f.valid[0]]
+    assert uv.shape[0] > 50 and float(uv[:, 0].max()) < 639 and float(uv[:, 1].max()) < 399

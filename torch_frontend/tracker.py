@@ -512,7 +512,8 @@ class FeatureTracker:
         with self._stage("mask"):
             keep, mask = distance_mask(
                 pts_s, cnt_s, valid_s, self.config.min_dist,
-                base_mask=base_mask, height=self.height, width=self.width,
+                # the image's own size: VINS-Fusion uses the actual size, Mono checked it equals the config
+                base_mask=base_mask, height=img_u8.shape[-2], width=img_u8.shape[-1],
             )
         valid_s = valid_s & keep
         n_max = self.K - valid_s.sum(1)
