@@ -43,3 +43,13 @@ def test_layout_and_licences():
 def test_sample_data_is_light():
     total = sum(p.stat().st_size for p in (REPO / "torch_frontend" / "data").rglob("*") if p.is_file())
     assert total < 8 * 2**20
+
+
+def test_public_names_resolve():
+    import torch_frontend as tf
+    import torch_frontend.loop as loop
+
+    for name in tf.__all__:
+        assert getattr(tf, name) is not None, name
+    for name in loop.__all__:
+        assert getattr(loop, name) is not None, name
