@@ -15,7 +15,6 @@ Usage: ``python benchmarks/bench_image.py [--device cpu|cuda] [--repeat N] [--th
 
 from __future__ import annotations
 
-import argparse
 import platform
 import statistics
 import sys
@@ -34,7 +33,7 @@ from torch_frontend.corners import good_features_to_track, min_eigen_response  #
 from torch_frontend.masks import distance_mask  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
 
 try:
     from torch_frontend.pyramid import build_pyramid  # noqa: E402
@@ -99,16 +98,9 @@ def _cases(B, raw, eq, tracked, cnts, cl, device):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--repeat", type=int, default=15)
-    ap.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (0: library default)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "image.json"))
-    args = ap.parse_args(argv)
+    args = kernel_bench_parser(__doc__, "image.json", repeat=15).parse_args(argv)
     device = torch.device(args.device)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-        cv2.setNumThreads(args.threads)
+    apply_threads(args.threads)
 
     paths = sorted(FRAMES.glob("*.png"))[:8]
     raw = np.stack([cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths])

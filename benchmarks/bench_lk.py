@@ -41,7 +41,7 @@ from torch_frontend.lk import track_lk  # noqa: E402
 from torch_frontend.pyramid import build_pyramid  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
@@ -69,21 +69,13 @@ def _time(fn, repeat, device, budget_s=20.0):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--repeat", type=int, default=5)
+    ap = kernel_bench_parser(__doc__, "lk.json", repeat=5)
     ap.add_argument("--compile", action="store_true", help="also time torch.compile of the step kernel (slow)")
     ap.add_argument("--no-compile", action="store_true", help=argparse.SUPPRESS)  # old flag: the default now
     ap.add_argument("--quick", action="store_true", help="skip B=64 x N=1000")
-    ap.add_argument("--threads", type=int, default=1,
-                    help="intra-op threads for torch and OpenCV alike (default 1: a fair single-core comparison, "
-                         "and robust on a busy machine)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "lk.json"))
     args = ap.parse_args(argv)
     device = torch.device(args.device)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-        cv2.setNumThreads(args.threads)
+    apply_threads(args.threads)
 
     paths = sorted(FRAMES.glob("*.png"))
     frames = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths]

@@ -17,7 +17,6 @@ Usage: ``python benchmarks/bench_loop_features.py [--device cpu|cuda] [--repeat 
 
 from __future__ import annotations
 
-import argparse
 import platform
 import statistics
 import sys
@@ -34,7 +33,7 @@ sys.path.insert(0, str(REPO))
 from torch_frontend.loop.features import brief, default_brief_pattern, fast, hamming  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 N_QUERY = 150
@@ -94,16 +93,9 @@ def _cases(B, raw, kps_cv, det, pattern, device):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (0: library default)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "loop_features.json"))
-    args = ap.parse_args(argv)
+    args = kernel_bench_parser(__doc__, "loop_features.json", repeat=5).parse_args(argv)
     device = torch.device(args.device)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-        cv2.setNumThreads(args.threads)
+    apply_threads(args.threads)
 
     paths = sorted(FRAMES.glob("*.png"))[:16]
     raw = np.stack([cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths])

@@ -450,3 +450,23 @@ def test_fusion_uses_the_actual_image_size():
         f = tr.track(torch.from_numpy(np.ascontiguousarray(img))[None, None], [0.05 * k])
     uv = f.uv[0][f.valid[0]]
     assert uv.shape[0] > 50 and float(uv[:, 0].max()) < 639 and float(uv[:, 1].max()) < 399
+
+
+def test_prediction_survives_a_later_remove():
+    """set_prediction() then remove(): each prediction stays with its feature (slots are compacted
+    by remove), and predicted tracks land where the features are (a static scene)."""
+    cfg = dataclasses.replace(_fusion_cfg(), num_of_cam=1, camera1=None)
+    seq = _euroc_sequence(2)
+    tr = FeatureTracker(cfg, mode="fusion")
+    f0 = tr.track(torch.from_numpy(seq[0][1])[None, None], [seq[0][0]])
+    ids0, uv0 = f0.ids[0][f0.valid[0]], f0.uv[0][f0.valid[0]]
+    tr.set_prediction(tr.state.ids, tr.state.pts, tr.state.valid)
+    tr.remove(0, ids0[:10].tolist())
+    f1 = tr.track(torch.from_numpy(seq[1][1])[None, None], [seq[1][0]])
+    ids1, uv1 = f1.ids[0][f1.valid[0]], f1.uv[0][f1.valid[0]]
+    common = torch.isin(ids0[10:], ids1)
+    assert common.float().mean() > 0.9
+    pos1 = {int(i): p for i, p in zip(ids1, uv1)}
+    moved = torch.stack([(pos1[int(i)] - p).norm() for i, p in zip(ids0[10:][common], uv0[10:][common])])
+    assert float(moved.median()) < 0.5
+    assert not bool(tr.state.has_prediction.any())  # consumed

@@ -104,3 +104,15 @@ def per_stream(value: Union[int, float, torch.Tensor], batch: int, device, dtype
         return t.expand(batch).clone()
     check_shape(t, (batch,), name)
     return t
+
+
+def valid_first_order(valid: torch.Tensor) -> torch.Tensor:
+    """``(B, K)`` slot order that moves each row's valid slots to the front, keeping their order
+    (a stable compaction, VINS's ``reduceVector``)."""
+    return torch.sort((~valid).to(torch.int8), dim=-1, stable=True).indices
+
+
+def gather_slots(t: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """Permute the slots (dim 1) of ``t (B, K, ...)`` by ``order (B, K')``."""
+    idx = order.reshape(order.shape + (1,) * (t.dim() - 2))
+    return torch.gather(t, 1, idx.expand(*order.shape, *t.shape[2:]))

@@ -48,7 +48,7 @@ from typing import NamedTuple, Sequence, Union
 import numpy as np
 import torch
 
-from ._checks import check_points, check_shape, default_valid
+from ._checks import check_points, check_shape, default_valid, gather_slots, valid_first_order
 
 __all__ = ["FundamentalResult", "find_fundamental", "refit_fundamental", "ransac_update_num_iters"]
 
@@ -513,11 +513,8 @@ def _compact(valid: torch.Tensor, *tensors: torch.Tensor, width: int | None = No
     if width is None:
         width = int(valid.sum(-1).max()) if valid.shape[0] else 1
     width = max(width, 1)
-    order = torch.argsort((~valid).to(torch.int8), dim=-1, stable=True)[:, :width]
-    out = [valid.gather(1, order)]
-    for t in tensors:
-        out.append(t.gather(1, order[..., None].expand(-1, -1, t.shape[-1])))
-    return order, out
+    order = valid_first_order(valid)[:, :width]
+    return order, [gather_slots(t, order) for t in (valid, *tensors)]
 
 
 _FIRST_ROUND = 32  # samples per problem in round 1: clean tracks stop OpenCV within a few samples

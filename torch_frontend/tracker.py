@@ -28,7 +28,7 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from ._checks import as_image_batch, check_shape
+from ._checks import as_image_batch, check_shape, gather_slots, valid_first_order
 from .config import TrackerConfig, load_config
 
 FOCAL_LENGTH = 460.0  # VINS's virtual pinhole for F-RANSAC (spec §2)
@@ -145,15 +145,9 @@ def _compact(valid: torch.Tensor, *tensors: torch.Tensor):
 
     valid: (B, K) bool; tensors: (B, K, ...). Returns (valid, *tensors) permuted.
     """
-    order = torch.sort((~valid).to(torch.int8), dim=1, stable=True).indices
-    return (_gather(valid, order),) + tuple(_gather(t, order) for t in tensors)
+    order = valid_first_order(valid)
+    return (gather_slots(valid, order),) + tuple(gather_slots(t, order) for t in tensors)
 
-
-def _gather(t: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
-    idx = order
-    for _ in range(t.dim() - 2):
-        idx = idx.unsqueeze(-1)
-    return torch.gather(t, 1, idx.expand(*order.shape, *t.shape[2:]))
 
 
 def _in_border(pts: torch.Tensor, width: int, height: int) -> torch.Tensor:
@@ -229,7 +223,7 @@ class TrackerState:
     prev_right_un: Optional[torch.Tensor] = None  # (B, K, 2)
     prev_right_valid: Optional[torch.Tensor] = None  # (B, K) bool
     prediction: Optional[torch.Tensor] = None  # (B, K, 2)
-    has_prediction: Optional[torch.Tensor] = None  # (B, K) bool
+    has_prediction: Optional[torch.Tensor] = None  # (B,) bool: set_prediction was called for the stream
 
 
 class FeatureTracker:
@@ -341,7 +335,7 @@ class FeatureTracker:
             prev_right_un=torch.zeros(B, K, 2, device=dev, dtype=self.dtype),
             prev_right_valid=torch.zeros(B, K, device=dev, dtype=torch.bool),
             prediction=torch.zeros(B, K, 2, device=dev, dtype=self.dtype),
-            has_prediction=torch.zeros(B, K, device=dev, dtype=torch.bool),
+            has_prediction=torch.zeros(B, device=dev, dtype=torch.bool),
         )
 
     # ------------------------------------------------------------------ helpers
@@ -447,9 +441,10 @@ class FeatureTracker:
     def set_prediction(self, ids: torch.Tensor, uv: torch.Tensor, valid: Optional[torch.Tensor] = None) -> None:
         """Predicted pixels for the next frame per id (VINS-Fusion ``setPrediction``).
 
-        ids: (B, M) int64; uv: (B, M, 2) pixels; valid: (B, M) bool. Features without a
-        prediction start from their previous position; with a prediction, LK uses it as the initial
-        guess with one pyramid level, falling back to plain LK when fewer than 10 track.
+        ids: (B, M) int64; uv: (B, M, 2) pixels; valid: (B, M) bool. In a stream with at least one
+        valid prediction, the next ``track`` starts LK from the predicted pixels (features without
+        one from their previous position) with one pyramid level, falling back to plain LK when
+        fewer than 10 track; other streams track as usual. Consumed by the next ``track``.
         """
         check_shape(ids, (self.B, "M"), "ids")
         check_shape(uv, (self.B, ids.shape[1], 2), "uv")
@@ -461,15 +456,15 @@ class FeatureTracker:
         j = match.to(torch.int8).argmax(-1)  # first match
         pred = torch.gather(uv.to(self.device, self.dtype), 1, j.unsqueeze(-1).expand(-1, -1, 2))
         s.prediction = torch.where(has.unsqueeze(-1), pred, s.pts)
-        s.has_prediction = has | s.valid  # every tracked slot gets a guess (previous pixel otherwise)
-        self._prediction_pending = True
+        s.has_prediction = has.any(-1)
 
     # ------------------------------------------------------------------ internals
 
     def _apply_compaction(self, valid: torch.Tensor) -> None:
         s = self.state
-        (s.valid, s.pts, s.ids, s.track_cnt, s.un_pts, s.prev_right_un, s.prev_right_valid) = _compact(
-            valid, s.pts, s.ids, s.track_cnt, s.un_pts, s.prev_right_un, s.prev_right_valid
+        # the prediction moves with its slot, so remove() after set_prediction() keeps them aligned
+        (s.valid, s.pts, s.ids, s.track_cnt, s.un_pts, s.prev_right_un, s.prev_right_valid, s.prediction) = _compact(
+            valid, s.pts, s.ids, s.track_cnt, s.un_pts, s.prev_right_un, s.prev_right_valid, s.prediction
         )
         s.ids = torch.where(s.valid, s.ids, torch.full_like(s.ids, -1))
         s.prev_right_valid = s.prev_right_valid & s.valid
@@ -508,7 +503,7 @@ class FeatureTracker:
         # unstable, see the spec §3.7 — a deterministic, documented difference).
         key = torch.where(v_sub, c_sub, torch.full_like(c_sub, -1))
         o_sub = torch.sort(-key, dim=1, stable=True).indices
-        pts_s, valid_s, cnt_s = _gather(pick(pts), o_sub), _gather(v_sub, o_sub), _gather(c_sub, o_sub)
+        pts_s, valid_s, cnt_s = gather_slots(pick(pts), o_sub), gather_slots(v_sub, o_sub), gather_slots(c_sub, o_sub)
         with self._stage("mask"):
             keep, mask = distance_mask(
                 pts_s, cnt_s, valid_s, self.config.min_dist,
@@ -552,13 +547,13 @@ class FeatureTracker:
         run = active & s.has_image
         lk_valid = s.valid & run.unsqueeze(-1)
         prev_pts = s.pts
-        if self.mode == "fusion" and getattr(self, "_prediction_pending", False):
-            nxt, st = self._lk(prev_pyr, pyr, s.pts, lk_valid, max_level=1, init_pts=s.prediction)
-            few = (st.sum(1) < 10) & run
-            nxt3, st3 = self._lk(prev_pyr, pyr, s.pts, lk_valid)
-            nxt = _where_stream(few, nxt3, nxt)
-            st = _where_stream(few, st3, st)
-            self._prediction_pending = False
+        if self.mode == "fusion" and bool(s.has_prediction.any()):
+            nxt1, st1 = self._lk(prev_pyr, pyr, s.pts, lk_valid, max_level=1, init_pts=s.prediction)
+            nxt, st = self._lk(prev_pyr, pyr, s.pts, lk_valid)
+            use = s.has_prediction & (st1.sum(1) >= 10)  # VINS: < 10 tracked => plain LK instead
+            nxt = _where_stream(use, nxt1, nxt)
+            st = _where_stream(use, st1, st)
+            s.has_prediction = s.has_prediction & ~run  # consumed (kept for streams not processed now)
         else:
             nxt, st = self._lk(prev_pyr, pyr, s.pts, lk_valid)
         if self.mode == "fusion" and cfg.flow_back:
@@ -625,7 +620,7 @@ class FeatureTracker:
 
         # setMask + detection on published streams
         order, valid_s, n_keep, new_pts, new_valid = self._detect(img_eq, pts, valid, cnt, publish, self.base_mask)
-        pts, ids, cnt, un_prev = (_gather(x, order) for x in (pts, ids, cnt, un_prev))
+        pts, ids, cnt, un_prev = (gather_slots(x, order) for x in (pts, ids, cnt, un_prev))
         valid, pts, ids, cnt, un_prev = _compact(valid_s, pts, ids, cnt, un_prev)
         pts, valid, ids, cnt, is_new = self._append(pts, valid, ids, cnt, new_pts, new_valid, n_keep)
 
@@ -709,7 +704,7 @@ class FeatureTracker:
         prev_uv = prev_pts
         order, valid_s, n_keep, new_pts, new_valid = self._detect(img_eq, pts, valid, cnt, active, None)
         pts, prev_uv, ids, cnt, un_prev, r_un_prev, r_valid_prev, prev_valid_ids = (
-            _gather(x, order) for x in (pts, prev_uv, ids, cnt, un_prev, r_un_prev, r_valid_prev, prev_valid_ids)
+            gather_slots(x, order) for x in (pts, prev_uv, ids, cnt, un_prev, r_un_prev, r_valid_prev, prev_valid_ids)
         )
         valid, pts, prev_uv, ids, cnt, un_prev, r_un_prev, r_valid_prev, prev_valid_ids = _compact(
             valid_s, pts, prev_uv, ids, cnt, un_prev, r_un_prev, r_valid_prev, prev_valid_ids

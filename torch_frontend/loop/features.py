@@ -62,6 +62,7 @@ import torch
 
 from .._checks import as_image_batch, check_points, check_shape, default_valid
 from ..errors import ConfigError
+from ..pyramid import _reflect101_index
 
 __all__ = [
     "fast",
@@ -268,16 +269,6 @@ def _fixed_gaussian_kernel(ksize: int, sigma: float, bits: int = 8) -> Tuple[int
     return tuple(res)
 
 
-def _reflect101_index(n: int, pad: int, device) -> torch.Tensor:
-    """Source indices of ``-pad .. n-1+pad`` under BORDER_REFLECT_101 (``gfedcb|abcdefgh|gfedcba``)."""
-    i = torch.arange(-pad, n + pad, device=device)
-    if n == 1:
-        return torch.zeros_like(i)
-    period = 2 * (n - 1)
-    i = torch.remainder(i, period)
-    return torch.minimum(i, period - i)
-
-
 def gaussian_blur_u8(img: torch.Tensor) -> torch.Tensor:
     """``cv2.GaussianBlur(img, (9, 9), 2, 2, borderType=BORDER_REFLECT_101)`` on 8-bit images,
     bit-exact (OpenCV's fixed-point path: integer kernel ``/256`` per direction, one rounding).
@@ -300,11 +291,11 @@ def _blur_impl(lv: torch.Tensor) -> torch.Tensor:
     k = _fixed_gaussian_kernel(9, 2.0)
     r = len(k) // 2
     B, H, W = lv.shape
-    px = lv.index_select(2, _reflect101_index(W, r, lv.device))
+    px = lv.index_select(2, _reflect101_index(W, r, r, lv.device))
     hor = k[r] * px[:, :, r:r + W]
     for i in range(r):
         hor = hor + k[i] * (px[:, :, i:i + W] + px[:, :, 2 * r - i:2 * r - i + W])  # <= 255 * 256
-    py = hor.index_select(1, _reflect101_index(H, r, lv.device))
+    py = hor.index_select(1, _reflect101_index(H, r, r, lv.device))
     ver = k[r] * py[:, r:r + H]
     for i in range(r):
         ver = ver + k[i] * (py[:, i:i + H] + py[:, 2 * r - i:2 * r - i + H])  # <= 255 * 2**16 < 2**31
@@ -453,11 +444,16 @@ def brief(
 
 
 # --------------------------------------------------------------------------------------- Hamming
+def _unpack_bits(d: torch.Tensor) -> torch.Tensor:
+    """``(..., W) int64 -> (..., 64 W) uint8`` bits (bit i = bit i%64 of word i//64)."""
+    shifts = torch.arange(64, device=d.device, dtype=torch.int64)
+    bits = (d.unsqueeze(-1) >> shifts) & 1  # sign-extension is masked off by & 1
+    return bits.reshape(*d.shape[:-1], 64 * d.shape[-1]).to(torch.uint8)
+
+
 def _unpack_pm1(d: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``(..., K, W)`` int64 words -> ``(..., K, 64 W)`` of ``+1`` (bit 0) / ``-1`` (bit 1)."""
-    shifts = torch.arange(64, device=d.device, dtype=torch.long)
-    bits = (d.unsqueeze(-1) >> shifts) & 1  # arithmetic shift is fine: we keep bit 0 only
-    return (1 - 2 * bits).to(dtype).flatten(-2)
+    return 1 - 2 * _unpack_bits(d).to(dtype)
 
 
 def hamming(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -44,7 +44,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 import time
 from pathlib import Path
 from typing import NamedTuple, Optional, Sequence, Union
@@ -53,6 +52,7 @@ import numpy as np
 import torch
 
 from torch_frontend.errors import ConfigError
+from torch_frontend.loop.features import _unpack_bits
 
 __all__ = [
     "BowVector",
@@ -116,13 +116,6 @@ def _hamming_packed(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     h = h[..., :4] + h[..., 4:]
     h = h[..., :2] + h[..., 2:]
     return h[..., 0].to(torch.int32) + h[..., 1]
-
-
-def _unpack_bits(d: torch.Tensor) -> torch.Tensor:
-    """``(..., 4) int64 -> (..., 256) uint8`` bits (bit i = bit i%64 of word i//64)."""
-    shifts = torch.arange(64, device=d.device, dtype=torch.int64)
-    bits = (d.unsqueeze(-1) >> shifts) & 1  # sign-extension is masked off by & 1
-    return bits.reshape(*d.shape[:-1], 256).to(torch.uint8)
 
 
 def _pack_bits(bits: torch.Tensor) -> torch.Tensor:
@@ -713,15 +706,8 @@ class Vocabulary:
 
 
 def _atomic_write(path: Path, write) -> None:
-    """Write via a temp file in the same folder, then ``os.replace`` (never a half-written file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a vocabulary is an ordinary data file
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write via a temp file in the same folder, then rename (never a half-written file)."""
+    from ..outputs import atomic_path
+
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
+        write(f)
