@@ -1,4 +1,4 @@
-"""The ``torch-frontend`` command line: ``track`` and ``demo``.
+"""The ``torch-frontend`` command line: ``track``, ``demo`` and ``vocabulary train``.
 
 ``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR)... --out DIR`` runs the
 VINS front end on one or more sequences at once (B streams in one batched tracker) and writes
@@ -227,6 +227,138 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _vocabulary_images(inputs: Sequence[str]) -> List[Path]:
+    """The image files of ``vocabulary train``: files as given, folders' images sorted by name."""
+    from .io.frames import IMAGE_SUFFIXES
+
+    files: List[Path] = []
+    for raw in inputs:
+        p = Path(raw)
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir()
+                           if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith("."))
+            if not found:
+                raise DataError(f"{p}: no images in folder (looked for {'/'.join(x[1:] for x in IMAGE_SUFFIXES)})")
+            files += found
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise DataError(f"{p}: no such image file or folder")
+    return files
+
+
+def run_vocabulary_train(
+    images: Sequence[str],
+    out,
+    *,
+    k: int = 10,
+    L: int = 6,
+    fast_threshold: int = 20,
+    max_images: int | None = None,
+    max_keypoints: int | None = None,
+    seed: int = 0,
+    device: str = "cpu",
+    progress: bool | None = None,
+    chunk: int = 8,
+) -> Dict[str, Any]:
+    """Train a BRIEF vocabulary (``loop.Vocabulary``) on FAST + BRIEF descriptors of ``images``
+    (files and/or folders) and save it to ``out`` (``.bin``: VINS's binary layout, else the
+    package's ``.npz`` format), atomically. Returns a summary dict.
+
+    Images of one size are described in chunks of ``chunk`` through ``loop.fast`` / ``loop.brief``;
+    ``max_images`` keeps that many evenly spaced images of the sorted list; ``max_keypoints`` keeps
+    the strongest FAST corners per image (default: all, as VINS).
+    """
+    import numpy as np
+    import torch
+
+    from .io.frames import read_image
+    from .loop import Vocabulary, brief, fast
+
+    if k < 2:
+        raise _UsageError(f"--k must be >= 2, got {k}")
+    if L < 1:
+        raise _UsageError(f"--L must be >= 1, got {L}")
+    out = Path(out)
+    if out.is_dir():
+        raise _UsageError(f"--out {out}: is a folder, expected a vocabulary file name")
+    if not out.parent.is_dir():
+        raise _UsageError(f"--out {out}: folder {out.parent} does not exist")
+    dev = _resolve_device(device)
+    files = _vocabulary_images(images)
+    if max_images is not None and max_images < len(files):
+        files = [files[int(i)] for i in np.linspace(0, len(files) - 1, max_images).round().astype(int)]
+
+    bar = None
+    if progress is not False:
+        from tqdm import tqdm
+
+        size = shutil.get_terminal_size((100, 20))
+        bar = tqdm(total=len(files), unit="image", desc="describing", disable=None if progress is None else False,
+                   file=sys.stderr, ncols=min(120, size.columns), nrows=size.lines, leave=False)
+    t0 = time.perf_counter()
+    descs: List[torch.Tensor] = []  # per image (K_i, 4) int64, valid descriptors only
+
+    def describe(batch: List[np.ndarray]) -> None:
+        img = torch.from_numpy(np.stack(batch)).to(dev)  # (b, H, W) uint8
+        pts, _, valid = fast(img, threshold=fast_threshold, max_points=max_keypoints)
+        d = brief(img, pts, valid)
+        for b in range(d.shape[0]):
+            descs.append(d[b][valid[b]])
+        if bar is not None:
+            bar.update(len(batch))
+
+    try:
+        pending: List[np.ndarray] = []
+        for f in files:
+            im = read_image(f)
+            if pending and (im.shape != pending[0].shape or len(pending) >= chunk):
+                describe(pending)
+                pending = []
+            pending.append(im)
+        if pending:
+            describe(pending)
+    finally:
+        if bar is not None:
+            bar.close()
+    n_desc = sum(int(d.shape[0]) for d in descs)
+    if n_desc == 0:
+        raise DataError(f"no FAST corners (threshold {fast_threshold}) in any of the {len(files)} images")
+    Kmax = max(int(d.shape[0]) for d in descs)
+    D = len(descs)
+    desc = torch.zeros(D, Kmax, 4, dtype=torch.int64, device=dev)
+    valid = torch.zeros(D, Kmax, dtype=torch.bool, device=dev)
+    for i, d in enumerate(descs):
+        desc[i, :d.shape[0]] = d
+        valid[i, :d.shape[0]] = True
+    t_desc = time.perf_counter() - t0
+    gen = torch.Generator(device=dev).manual_seed(int(seed))
+    # Vocabulary.train reports its levels on stdout: only alongside a visible progress bar
+    verbose = bar is not None and not bar.disable
+    voc = Vocabulary.train(desc, valid, k=k, L=L, generator=gen, progress=verbose)
+    if out.suffix.lower() == ".bin":
+        voc.save_vins_bin(out)
+    else:
+        voc.save(out)
+    seconds = time.perf_counter() - t0
+    return {"images": D, "descriptors": n_desc, "words": int(voc.num_words), "nodes": int(voc.num_nodes),
+            "k": k, "L": L, "seconds": round(seconds, 3), "describe_seconds": round(t_desc, 3),
+            "out": str(out), "device": str(dev)}
+
+
+def _cmd_vocabulary(args: argparse.Namespace) -> int:
+    if args.vocabulary_command != "train":
+        raise _UsageError("vocabulary: expected a subcommand: train")
+    s = run_vocabulary_train(
+        args.images, args.out, k=args.k, L=args.L, fast_threshold=args.fast_threshold,
+        max_images=args.max_images, max_keypoints=args.max_keypoints, seed=args.seed, device=args.device,
+        progress=False if args.no_progress else None,
+    )
+    print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
+          f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
+    return 0
+
+
 class _SourceAction(argparse.Action):
     """``--euroc/--bag/--images``: appended, in command-line order, as ``(kind, path)``."""
 
@@ -316,6 +448,38 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
     _add_run_options(demo, "out/demo")
     demo.set_defaults(func=_cmd_demo)
+
+    vocab = sub.add_parser(
+        "vocabulary",
+        help="train a BRIEF bag-of-words vocabulary for loop closure",
+        description="Bag-of-words vocabularies (DBoW2-style, VINS's brief_k10L6 layout) for loop closure.",
+    )
+    vsub = vocab.add_subparsers(dest="vocabulary_command", metavar="SUBCOMMAND")
+    vtrain = vsub.add_parser(
+        "train",
+        help="train a vocabulary on FAST + BRIEF descriptors of images",
+        description="Detect FAST corners and BRIEF descriptors (VINS's keyframe rules) in IMAGES and "
+                    "train a k-ary, L-level vocabulary by hierarchical k-medians. FILE ending in .bin is "
+                    "written in VINS's binary layout (brief_k10L6.bin), anything else in the package's "
+                    ".npz format (Vocabulary.load).",
+        epilog="example: torch-frontend vocabulary train MH_01/mav0/cam0/data --out voc.npz --max-images 500",
+    )
+    vtrain.add_argument("images", nargs="+", metavar="IMAGES",
+                        help="image files and/or folders of images (sorted by name)")
+    vtrain.add_argument("--out", type=Path, required=True, metavar="FILE",
+                        help="vocabulary file (.bin: VINS binary; else .npz); its folder must exist")
+    vtrain.add_argument("--k", type=int, default=10, help="branching factor (default: 10)")
+    vtrain.add_argument("--L", type=int, default=6, help="depth levels (default: 6)")
+    vtrain.add_argument("--fast-threshold", type=int, default=20, metavar="T",
+                        help="FAST intensity threshold (default: 20, as VINS)")
+    vtrain.add_argument("--max-images", type=_positive_int, default=None, metavar="N",
+                        help="use N images evenly spaced over the sorted list")
+    vtrain.add_argument("--max-keypoints", type=_positive_int, default=None, metavar="N",
+                        help="keep the N strongest FAST corners per image (default: all)")
+    vtrain.add_argument("--seed", type=int, default=0, help="k-medians seeding (default: 0)")
+    vtrain.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    vtrain.add_argument("--no-progress", action="store_true", help="no progress bar")
+    vocab.set_defaults(func=_cmd_vocabulary)
     return parser
 
 
