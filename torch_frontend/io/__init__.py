@@ -15,10 +15,17 @@ def __getattr__(name):
         from . import multistream
 
         return getattr(multistream, name)
+    if name in _TRAJECTORY:
+        from . import trajectory
+
+        return getattr(trajectory, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = [
+_TRAJECTORY = ("Trajectory", "read_trajectory", "write_tum", "write_vins_csv", "interpolate", "covered",
+               "associate", "align_se3", "ate_rmse", "add_drift")
+
+__all__ = [*_TRAJECTORY,
     "read_opencv_yaml",
     "DataError",
     "Frame",
