@@ -1,32 +1,77 @@
-"""Loop closure, part 1: keyframe features (FAST + BRIEF), bag of binary words, place recognition.
+"""Loop closure: VINS-Mono's ``pose_graph`` (and VINS-Fusion's ``loop_fusion``), batched.
 
-VINS-Mono's ``pose_graph`` front half, batched: ``fast``/``brief``/``hamming`` describe keyframes,
-``Vocabulary`` turns descriptors into bags of words (DBoW2), ``PlaceDatabase`` answers "have I been
-here before?" with VINS's ``detectLoop`` rule.
+Part 1, place recognition: ``fast``/``brief``/``hamming`` describe keyframes, ``Vocabulary`` turns
+descriptors into bags of words (DBoW2), ``PlaceDatabase`` answers "have I been here before?" with
+VINS's ``detectLoop`` rule.
+
+Part 2, verification and the pose graph: ``KeyFrame`` and ``match_brief`` (VINS's
+``searchByBRIEFDes``), ``pnp_ransac`` (batched P3P RANSAC + differentiable refinement, or
+``cv2.solvePnPRansac``), ``PoseGraph`` (sequences, merge, drift, save/load in VINS's format) over
+the pure optimisers ``optimize_4dof`` / ``optimize_6dof``; ``triangulate_points`` for keyframes
+built from tracks and poses; ``render_loop_sequence`` renders a revisiting test sequence.
+
+Names are imported lazily, so ``import torch_frontend.loop`` stays cheap.
 """
 
-from .database import PlaceDatabase
-from .features import (
-    brief,
-    default_brief_pattern,
-    fast,
-    gaussian_blur_u8,
-    hamming,
-    load_brief_pattern,
-    make_brief_pattern,
-)
-from .vocabulary import BowVector, Vocabulary, bow_to_dense
+from __future__ import annotations
 
-__all__ = [
-    "BowVector",
-    "PlaceDatabase",
-    "Vocabulary",
-    "bow_to_dense",
-    "brief",
-    "default_brief_pattern",
-    "fast",
-    "gaussian_blur_u8",
-    "hamming",
-    "load_brief_pattern",
-    "make_brief_pattern",
-]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "PlaceDatabase": "database",
+    "brief": "features",
+    "default_brief_pattern": "features",
+    "fast": "features",
+    "gaussian_blur_u8": "features",
+    "hamming": "features",
+    "load_brief_pattern": "features",
+    "make_brief_pattern": "features",
+    "BowVector": "vocabulary",
+    "Vocabulary": "vocabulary",
+    "bow_to_dense": "vocabulary",
+    "KeyFrame": "keyframe",
+    "describe_keyframes": "keyframe",
+    "match_brief": "keyframe",
+    "PnPResult": "pnp",
+    "p3p": "pnp",
+    "pnp_ransac": "pnp",
+    "refine_pnp": "pnp",
+    "LoopResult": "pose_graph",
+    "PoseGraph": "pose_graph",
+    "verify_loops": "pose_graph",
+    "optimize_4dof": "optimize",
+    "optimize_6dof": "optimize",
+    "sequential_edges": "optimize",
+    "measurements_4dof": "optimize",
+    "measurements_6dof": "optimize",
+    "camera_poses": "triangulate",
+    "triangulate_points": "triangulate",
+    "SyntheticSequence": "synthetic",
+    "make_keyframes": "synthetic",
+    "render_loop_sequence": "synthetic",
+    "R_to_quat": "geometry",
+    "R_to_ypr": "geometry",
+    "normalize_angle": "geometry",
+    "quat_to_R": "geometry",
+    "rodrigues": "geometry",
+    "rodrigues_inverse": "geometry",
+    "wrap_angle_once": "geometry",
+    "yaw_to_R": "geometry",
+    "ypr_to_R": "geometry",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    mod = _EXPORTS.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'torch_frontend.loop' has no attribute '{name}'")
+    value = getattr(importlib.import_module(f".{mod}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__
