@@ -1,0 +1,936 @@
+"""Pose-graph optimisation of VINS's loop closure: ``optimize4DoF`` (§7.8) and loop_fusion's
+``optimize6DoF`` (§7.12), as batched torch Levenberg-Marquardt with differentiable optima.
+
+Convention:
+    * Nodes are keyframes of the optimisation window in list order; poses are body-to-world
+      ``(R_w_i, T_w_i)``, float64 by default (float32 allowed), translations in metres.
+    * 4-DoF: per node ``t (N, 3)`` and ``yaw (N,)`` are optimised; ``pitch, roll (N,)`` are
+      constants. Angles are in **degrees** (VINS ``ypr2R``: ``Rz(yaw) Ry(pitch) Rx(roll)``).
+    * 6-DoF: per node ``t (N, 3)`` and the unit quaternion ``q (N, 4)`` **w-first** ``(w, x, y, z)``.
+    * Edge ``e`` constrains node ``j[e]`` relative to node ``i[e]`` (``i`` is the older node ``a``
+      of the spec). ``is_loop (E,)`` marks loop edges (Huber 0.1 loss, 4-DoF yaw residual / 10);
+      ``fixed (N,)`` marks constant nodes (the earliest loop target, loaded keyframes).
+
+The solver is Ceres's default trust region as VINS runs it (``max_num_iterations = 5``):
+Levenberg-Marquardt with the damping ``diag(JᵀJ) / radius`` (initial radius 1e4), the radius
+updated by the gain ratio (×1/max(1/3, 1 − (2ρ − 1)³) on success, ÷2, ÷4, ... on failure), the
+robust loss through Ceres's corrector (Huber's ρ'' < 0 ⇒ plain ``sqrt(ρ')`` weighting) and Ceres's
+function / gradient / parameter tolerances. Residuals and Jacobians are analytic and batched over
+edges; the normal equations are assembled per node block with ``index_add``/``index_put``.
+
+Linear solvers (``solver=``): ``"dense"`` (torch Cholesky of the full ``pN × pN`` matrix; the CUDA
+default), ``"banded"`` (torch block cyclic reduction of the block-tridiagonal matrix formed by the
+edges between nodes at most ``band`` slots apart, plus a Woodbury correction for the other edges,
+i.e. the few long loop edges; the CPU default, see ``benchmarks/bench_pose_graph.py``),
+``"lapack_banded"`` (scipy ``solveh_banded`` + the same Woodbury correction) and ``"splu"``
+(scipy.sparse SuperLU). ``"auto"`` picks dense on CUDA and for tiny graphs, banded on CPU, and
+SuperLU (when scipy is installed) when the long edges are too many for a low-rank correction.
+
+Gradients: the returned optimum is differentiable w.r.t. the measurements (and the constants:
+pitch/roll, fixed nodes' poses) by the implicit-function theorem: backward solves ``H λ = v``
+with the exact Hessian of the cost at the returned point and back-propagates ``−λ·∂∇ₓF/∂θ``.
+This assumes the returned point is an optimum (converged solve); with ``iters=5`` on a badly
+drifted graph it is an approximation. Gradients w.r.t. the free nodes' initial values are zero.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, Tuple
+
+import torch
+
+from ..errors import DataError
+from .geometry import R_to_ypr, quat_to_R, wrap_angle_once, ypr_to_R
+
+__all__ = [
+    "measurements_4dof",
+    "measurements_6dof",
+    "optimize_4dof",
+    "optimize_6dof",
+    "sequential_edges",
+]
+
+_DEG = math.pi / 180.0
+HUBER_DELTA = 0.1  # ceres::HuberLoss(0.1) on loop edges (both modes)
+LOOP_YAW_WEIGHT = 0.1  # FourDOFWeightError: yaw residual / 10 on loop edges
+T_SCALE_6DOF = 0.1  # RelativeRTError: translation residual / 0.1
+Q_SCALE_6DOF = 0.01  # RelativeRTError: rotation residual / 0.01
+SOLVERS = ("auto", "dense", "banded", "lapack_banded", "splu")
+
+
+# --------------------------------------------------------------------------------------------
+# small helpers
+# --------------------------------------------------------------------------------------------
+
+def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of w-first quaternions ``(..., 4)``."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], -1)
+
+
+def _qconj(q: torch.Tensor) -> torch.Tensor:
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*v.shape[:-1], 3, 3)
+
+
+def _quat_exp(d: torch.Tensor) -> torch.Tensor:
+    """Ceres ``QuaternionParameterization`` delta: ``(cos|d|, sin|d| d/|d|)`` (a rotation by
+    ``2|d|``); the zero step maps to the identity (no 0/0)."""
+    n = d.norm(dim=-1, keepdim=True)
+    small = n < 1e-12
+    ns = torch.where(small, torch.ones_like(n), n)
+    return torch.cat([torch.cos(n), torch.where(small, d, torch.sin(ns) / ns * d)], -1)
+
+
+def _huber(s: torch.Tensor, loop: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Ceres HuberLoss(0.1) on loop edges, identity on the others: ``(ρ(s), ρ'(s))``.
+
+    ``s`` is the squared norm of the residual block. The outlier branch is evaluated on a
+    clamped ``s`` so its (unused) value and gradient stay finite at ``s = 0``.
+    """
+    b = HUBER_DELTA * HUBER_DELTA
+    out = loop & (s > b)
+    sq = torch.sqrt(torch.where(out, s, torch.ones_like(s)))
+    rho = torch.where(out, 2.0 * HUBER_DELTA * sq - b, s)
+    rho1 = torch.where(out, HUBER_DELTA / sq, torch.ones_like(s))
+    return rho, rho1
+
+
+# --------------------------------------------------------------------------------------------
+# the two residual models
+# --------------------------------------------------------------------------------------------
+
+class _FourDof:
+    """FourDOFError / FourDOFWeightError. State ``x (N, 4) = (t, yaw°)``; tangent = state."""
+
+    p = 4
+    rd = 4
+
+    def __init__(self, pitch, roll, i, j, t_meas, yaw_meas, is_loop):
+        self.i, self.j, self.t_meas, self.yaw_meas, self.loop = i, j, t_meas, yaw_meas, is_loop
+        z = torch.zeros_like(pitch)
+        # R_a = Rz(yaw_a) Ry(pitch_a) Rx(roll_a): the constant Ry Rx part per edge, transposed
+        self.A = ypr_to_R(torch.stack([z, pitch, roll], -1))[i].mT.contiguous()
+        self.w = torch.where(is_loop, LOOP_YAW_WEIGHT, 1.0).to(pitch.dtype)
+
+    def _parts(self, x):
+        i, j = self.i, self.j
+        xi, xj = x[i], x[j]
+        d = xj[:, :3] - xi[:, :3]
+        psi = xi[:, 3] * _DEG
+        c, s = torch.cos(psi), torch.sin(psi)
+        u = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], -1)  # Rz(ψ)ᵀ d
+        rt = (self.A @ u[..., None])[..., 0] - self.t_meas
+        rpsi = self.w * wrap_angle_once(xj[:, 3] - xi[:, 3] - self.yaw_meas)
+        return torch.cat([rt, rpsi[:, None]], -1), c, s, d
+
+    def residual(self, x):
+        return self._parts(x)[0]
+
+    def linearize(self, x):
+        r, c, s, d = self._parts(x)
+        E = r.shape[0]
+        o, z = torch.ones_like(c), torch.zeros_like(c)
+        RzT = torch.stack([c, s, z, -s, c, z, z, z, o], -1).reshape(E, 3, 3)
+        RiT = self.A @ RzT
+        du = torch.stack([-s * d[:, 0] + c * d[:, 1], -c * d[:, 0] - s * d[:, 1], z], -1) * _DEG
+        dpsi = (self.A @ du[..., None])[..., 0]
+        Ji = r.new_zeros(E, 4, 4)
+        Jj = r.new_zeros(E, 4, 4)
+        Ji[:, :3, :3] = -RiT
+        Ji[:, :3, 3] = dpsi
+        Ji[:, 3, 3] = -self.w
+        Jj[:, :3, :3] = RiT
+        Jj[:, 3, 3] = self.w
+        return r, Ji, Jj
+
+    @staticmethod
+    def plus(x, dx):
+        # AngleLocalParameterization: plus, then Ceres's single-wrap NormalizeAngle
+        return torch.cat([x[:, :3] + dx[:, :3], wrap_angle_once(x[:, 3:] + dx[:, 3:])], -1)
+
+    # exact per-edge cost for the implicit-function backward (torch.func-friendly, unbatched)
+    @staticmethod
+    def edge_cost(xi, xj, pitch_i, roll_i, tm, ym, loop):
+        R = ypr_to_R(torch.stack([xi[3], pitch_i, roll_i]))
+        rt = R.mT @ (xj[:3] - xi[:3]) - tm
+        w = torch.where(loop, LOOP_YAW_WEIGHT, 1.0)
+        r = torch.cat([rt, (w * wrap_angle_once(xj[3] - xi[3] - ym))[None]])
+        return 0.5 * _huber((r * r).sum(), loop)[0]
+
+
+class _SixDof:
+    """RelativeRTError. State ``x (N, 7) = (t, q wxyz)``; tangent ``(dt, dθ)`` with Ceres's
+    quaternion plus ``q ← (cos|dθ|, sin|dθ| dθ/|dθ|) ⊗ q``."""
+
+    p = 6
+    rd = 6
+
+    def __init__(self, i, j, t_meas, q_meas, is_loop):
+        self.i, self.j, self.t_meas, self.loop = i, j, t_meas, is_loop
+        self.qm_inv = _qconj(q_meas)
+
+    def _parts(self, x):
+        xi, xj = x[self.i], x[self.j]
+        Ri, Rj = quat_to_R(xi[:, 3:]), quat_to_R(xj[:, 3:])
+        d = xj[:, :3] - xi[:, :3]
+        rt = ((Ri.mT @ d[..., None])[..., 0] - self.t_meas) / T_SCALE_6DOF
+        e = _qmul(_qmul(self.qm_inv, _qconj(xi[:, 3:])), xj[:, 3:])
+        rq = 2.0 * e[:, 1:] / Q_SCALE_6DOF
+        return torch.cat([rt, rq], -1), Ri, Rj, d, e
+
+    def residual(self, x):
+        return self._parts(x)[0]
+
+    def linearize(self, x):
+        r, Ri, Rj, d, e = self._parts(x)
+        E = r.shape[0]
+        eye = torch.eye(3, dtype=r.dtype, device=r.device)
+        # q' = p ⊗ q with p ≈ (1, δ): R' ≈ (I + 2[δ]×) R and e' ≈ e ⊗ (1, ±R_jᵀ δ)
+        M = (e[:, :1, None] * eye + _skew(e[:, 1:])) @ Rj.mT * (2.0 / Q_SCALE_6DOF)
+        Ji = r.new_zeros(E, 6, 6)
+        Jj = r.new_zeros(E, 6, 6)
+        Ji[:, :3, :3] = -Ri.mT / T_SCALE_6DOF
+        Ji[:, :3, 3:] = Ri.mT @ _skew(d) * (2.0 / T_SCALE_6DOF)
+        Ji[:, 3:, 3:] = -M
+        Jj[:, :3, :3] = Ri.mT / T_SCALE_6DOF
+        Jj[:, 3:, 3:] = M
+        return r, Ji, Jj
+
+    @staticmethod
+    def plus(x, dx):
+        q = _qmul(_quat_exp(dx[:, 3:]), x[:, 3:])
+        return torch.cat([x[:, :3] + dx[:, :3], q / q.norm(dim=-1, keepdim=True)], -1)
+
+    @staticmethod
+    def edge_cost(di, dj, xi, xj, tm, qm, loop):
+        # second-order retraction (1 − |δ|²/2, δ) ⊗ q: enough for the exact Hessian at δ = 0
+        def ret(d, q):
+            return _qmul(torch.cat([(1.0 - 0.5 * (d[3:] * d[3:]).sum())[None], d[3:]]), q)
+
+        qi, qj = ret(di, xi[3:]), ret(dj, xj[3:])
+        Ri = quat_to_R(qi)
+        rt = (Ri.mT @ (xj[:3] + dj[:3] - xi[:3] - di[:3]) - tm) / T_SCALE_6DOF
+        qi_n = qi / qi.norm()
+        qj_n = qj / qj.norm()
+        e = _qmul(_qmul(_qconj(qm), _qconj(qi_n)), qj_n)
+        r = torch.cat([rt, 2.0 * e[1:] / Q_SCALE_6DOF])
+        return 0.5 * _huber((r * r).sum(), loop)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# linear algebra: normal equations H δ = rhs, H = blocks of near edges (+ far edges low rank)
+# --------------------------------------------------------------------------------------------
+
+class _System:
+    """Block normal equations. ``Hd (N, p, p)`` diagonal blocks of the matrix part, ``(ei, ej,
+    Hij (M, p, p))`` off-diagonal blocks (row node ei, column node ej; the transpose is implied),
+    ``U (N, p, k)`` or None: the low-rank part ``U Uᵀ`` (long edges, Woodbury)."""
+
+    def __init__(self, Hd, ei, ej, Hij, U):
+        self.Hd, self.ei, self.ej, self.Hij, self.U = Hd, ei, ej, Hij, U
+
+
+def _dense_matrix(Hd, ei, ej, Hij):
+    N, p = Hd.shape[:2]
+    H = Hd.new_zeros(N, p, N, p)
+    ar = torch.arange(N, device=Hd.device)
+    H[ar, :, ar, :] = Hd
+    a = torch.arange(p, device=Hd.device)
+    if ei.numel():
+        H.index_put_((ei[:, None, None], a[None, :, None], ej[:, None, None], a[None, None, :]), Hij, accumulate=True)
+        H.index_put_((ej[:, None, None], a[None, :, None], ei[:, None, None], a[None, None, :]), Hij.mT,
+                     accumulate=True)
+    return H.reshape(N * p, N * p)
+
+
+def _solve_dense(sys: _System, rhs):
+    N, p = sys.Hd.shape[:2]
+    H = _dense_matrix(sys.Hd, sys.ei, sys.ej, sys.Hij)
+    L, info = torch.linalg.cholesky_ex(H)
+    x = torch.cholesky_solve(rhs.reshape(N * p, -1), L).reshape(rhs.shape)
+    return x, bool(info == 0)
+
+
+class _BandedCR:
+    """Block-banded SPD solver by block cyclic reduction, for the edges at most ``band`` slots apart.
+
+    Nodes are grouped ``band`` at a time into super-blocks of size ``m = band·p``, which makes the
+    matrix block-tridiagonal: ``D (K, m, m)`` diagonal super-blocks, ``C (K, m, m)`` with
+    ``C[k] = H[k, k+1]``; ``K`` is padded to a power of two with identity blocks. Each level
+    eliminates the odd super-blocks (independent, so one batched Cholesky) and leaves a
+    block-tridiagonal Schur complement on the even ones: log2(K) batched levels instead of K
+    sequential block steps. The elimination is a permuted Cholesky ``B = L Lᵀ``; ``forward``
+    applies ``L⁻¹`` (what Woodbury's capacitance needs, ``UᵀB⁻¹U = (L⁻¹U)ᵀ(L⁻¹U)``) and ``back``
+    applies ``L⁻ᵀ``. The scatter pattern of the node blocks is built once per graph.
+    """
+
+    def __init__(self, N, p, band, ei, ej, dtype, device):
+        s = band
+        K = -(-N // s)
+        self.N, self.p, self.s, self.m = N, p, s, s * p
+        self.Kp = Kp = 1 << max(0, (K - 1).bit_length())
+        m = self.m
+        a = torch.arange(p, device=device)
+        n = torch.arange(N, device=device)
+        size = Kp * m * m
+
+        def flat(blk, si, ai, sj, aj):  # index into D (or C with + size) of entry (si, ai; sj, aj) of block blk
+            return ((blk * s + si) * p + ai) * m + sj * p + aj
+
+        # diagonal node blocks -> D
+        tgt = [flat((n // s)[:, None, None], (n % s)[:, None, None], a[None, :, None], (n % s)[:, None, None],
+                    a[None, None, :]).reshape(-1)]
+        src = [torch.arange(N * p * p, device=device)]
+        if ei.numel():
+            lo, hi = torch.minimum(ei, ej), torch.maximum(ei, ej)
+            e = torch.arange(ei.shape[0], device=device)[:, None, None]
+            # entry (a, b) of H[lo, hi]: Hij[a, b] when ei <= ej, else Hij[b, a]
+            fwd = (ei <= ej)[:, None, None]
+            sab = N * p * p + e * p * p + torch.where(fwd, a[None, :, None] * p + a[None, None, :],
+                                                      a[None, None, :] * p + a[None, :, None])
+            A, B = lo // s, hi // s
+            same = (A == B)[:, None, None]
+            ab = flat(A[:, None, None], (lo % s)[:, None, None], a[None, :, None], (hi % s)[:, None, None],
+                      a[None, None, :])
+            ba = flat(A[:, None, None], (hi % s)[:, None, None], a[None, None, :], (lo % s)[:, None, None],
+                      a[None, :, None])
+            sab = sab.expand(-1, p, p)
+            # same super-block: both triangles into D; neighbouring super-blocks: H[lo, hi] into C[A]
+            tgt += [torch.where(same, ab, ab + size).reshape(-1), ba[same.expand(-1, p, p)]]
+            src += [sab.reshape(-1), sab[same.expand(-1, p, p)]]
+        self.tgt, self.src = torch.cat(tgt), torch.cat(src)
+        base = torch.zeros(2 * size, dtype=dtype, device=device)
+        pad = torch.arange(N, Kp * s, device=device)  # padding nodes: identity blocks
+        base.index_put_((flat((pad // s)[:, None], (pad % s)[:, None], a[None, :], (pad % s)[:, None], a[None, :])
+                         .reshape(-1),), torch.ones((), dtype=dtype, device=device))
+        self.base = base
+
+    def factor(self, Hd, Hij):
+        vals = torch.cat([Hd.reshape(-1), Hij.reshape(-1)])
+        buf = self.base.index_add(0, self.tgt, vals[self.src])
+        Kp, m = self.Kp, self.m
+        D, C = buf[:Kp * m * m].reshape(Kp, m, m), buf[Kp * m * m:].reshape(Kp, m, m)
+        levels = []
+        ok = torch.ones((), dtype=torch.bool, device=Hd.device)
+        while D.shape[0] > 1:
+            De, Do, Ce, Co = D[0::2], D[1::2], C[0::2], C[1::2]
+            Lo, info = torch.linalg.cholesky_ex(Do)
+            ok = ok & (info == 0).all()
+            # G = Lo⁻¹ [Ceᵀ, Co]: odd block i couples to even i (Ceᵀ) and even i + 1 (Co)
+            G = torch.linalg.solve_triangular(Lo, torch.cat([Ce.mT, Co], -1), upper=False)
+            GG = G.mT @ G  # [[G1ᵀG1, G1ᵀG2], [G2ᵀG1, G2ᵀG2]] in one batched product
+            Dn = De - GG[:, :m, :m]
+            Dn[1:] -= GG[:-1, m:, m:]
+            levels.append((Lo, G))
+            D, C = Dn, -GG[:, :m, m:]
+        Lf, info = torch.linalg.cholesky_ex(D)
+        return (levels, Lf), bool(ok & (info == 0).all())
+
+    def to_blocks(self, rhs):
+        """``(N, p, r)`` -> ``(Kp, m, r)`` zero-padded."""
+        b = rhs.new_zeros(self.Kp * self.s, self.p, rhs.shape[-1])
+        b[:self.N] = rhs
+        return b.reshape(self.Kp, self.m, -1)
+
+    def forward(self, fac, b):
+        """``L⁻¹ b`` as the list of per-level pieces (odd blocks of each level, then the last)."""
+        levels, Lf = fac
+        m = self.m
+        ws = []
+        for Lo, G in levels:
+            w = torch.linalg.solve_triangular(Lo, b[1::2], upper=False)
+            Gw = G.mT @ w
+            b = b[0::2] - Gw[:, :m]
+            b[1:] -= Gw[:-1, m:]
+            ws.append(w)
+        ws.append(torch.linalg.solve_triangular(Lf, b, upper=False))
+        return ws
+
+    def back(self, fac, ws):
+        """``L⁻ᵀ`` of the forward pieces -> ``(N, p, r)``."""
+        levels, Lf = fac
+        x = torch.linalg.solve_triangular(Lf.mT, ws[-1], upper=True)
+        for (Lo, G), w in zip(reversed(levels), reversed(ws[:-1])):
+            xx = torch.cat([x, torch.cat([x[1:], torch.zeros_like(x[:1])])], 1)  # (x_even_i; x_even_i+1)
+            xo = torch.linalg.solve_triangular(Lo.mT, w - G @ xx, upper=True)
+            x = torch.stack([x, xo], 1).reshape(-1, *x.shape[1:])
+        return x.reshape(self.Kp * self.s, self.p, -1)[:self.N]
+
+
+def _solve_banded(sys: _System, rhs, cr: _BandedCR):
+    """``(B + U Uᵀ) x = rhs`` with Woodbury on top of the cyclic-reduction factor of B:
+    ``x = L⁻ᵀ (w_r − W_U c)``, ``c = (I + W_Uᵀ W_U)⁻¹ W_Uᵀ w_r``, ``W = L⁻¹ [rhs, U]``."""
+    fac, ok = cr.factor(sys.Hd, sys.Hij)
+    R = rhs[..., None] if sys.U is None else torch.cat([rhs[..., None], sys.U], -1)
+    ws = cr.forward(fac, cr.to_blocks(R))
+    if sys.U is not None:
+        k = sys.U.shape[-1]
+        Wr = torch.cat([w[..., :1].reshape(-1, 1) for w in ws])
+        WU = torch.cat([w[..., 1:].reshape(-1, k) for w in ws])
+        cap = torch.eye(k, dtype=rhs.dtype, device=rhs.device) + WU.mT @ WU
+        Lc, info = torch.linalg.cholesky_ex(cap)
+        ok = ok and bool(info == 0)
+        c = torch.cholesky_solve(WU.mT @ Wr, Lc)
+        ws = [w[..., :1] - w[..., 1:] @ c for w in ws]
+    return cr.back(fac, ws)[..., 0], ok
+
+
+def _solve_lapack_banded_B(sys: _System, rhs, band: int):
+    import numpy as np
+    from scipy.linalg import LinAlgError, solveh_banded
+
+    N, p = sys.Hd.shape[:2]
+    u = band * p + p - 1
+    n = N * p
+    ab = torch.zeros(u + 1, n, dtype=torch.float64)
+    a = torch.arange(p)
+    node = torch.arange(N)
+    rows = (node[:, None, None] * p + a[None, :, None]).expand(N, p, p)
+    cols = (node[:, None, None] * p + a[None, None, :]).expand(N, p, p)
+    keep = rows >= cols
+    Hd = sys.Hd.detach().cpu().double()
+    ab.index_put_((rows[keep] - cols[keep], cols[keep]), Hd[keep], accumulate=True)
+    if sys.ei.numel():
+        ei, ej = sys.ei.cpu(), sys.ej.cpu()
+        hi = torch.maximum(ei, ej)
+        lo = torch.minimum(ei, ej)
+        blk = torch.where((ei >= ej)[:, None, None], sys.Hij.detach().cpu().double(),
+                          sys.Hij.detach().cpu().double().mT)  # H[hi, lo]
+        r_ = (hi[:, None, None] * p + a[None, :, None]).expand_as(blk)
+        c_ = (lo[:, None, None] * p + a[None, None, :]).expand_as(blk)
+        ab.index_put_(((r_ - c_).reshape(-1), c_.reshape(-1)), blk.reshape(-1), accumulate=True)
+    try:
+        x = solveh_banded(ab.numpy(), rhs.detach().cpu().double().reshape(n, -1).numpy(), lower=True,
+                          check_finite=False)
+    except (LinAlgError, ValueError):
+        return rhs, False
+    return torch.from_numpy(np.ascontiguousarray(x)).to(rhs).reshape(rhs.shape), True
+
+
+def _solve_splu(sys: _System, rhs):
+    import numpy as np
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    N, p = sys.Hd.shape[:2]
+    a = torch.arange(p)
+    node = torch.arange(N)
+    ei, ej = sys.ei.cpu(), sys.ej.cpu()
+    Hij = sys.Hij.detach().cpu().double()
+    rows = torch.cat([(node[:, None, None] * p + a[None, :, None]).expand(N, p, p).reshape(-1),
+                      (ei[:, None, None] * p + a[None, :, None]).expand(-1, p, p).reshape(-1),
+                      (ej[:, None, None] * p + a[None, None, :]).expand(-1, p, p).reshape(-1)])
+    cols = torch.cat([(node[:, None, None] * p + a[None, None, :]).expand(N, p, p).reshape(-1),
+                      (ej[:, None, None] * p + a[None, None, :]).expand(-1, p, p).reshape(-1),
+                      (ei[:, None, None] * p + a[None, :, None]).expand(-1, p, p).reshape(-1)])
+    vals = torch.cat([sys.Hd.detach().cpu().double().reshape(-1), Hij.reshape(-1), Hij.reshape(-1)])
+    H = sp.csc_matrix((vals.numpy(), (rows.numpy(), cols.numpy())), shape=(N * p, N * p))
+    try:
+        lu = splu(H, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        x = lu.solve(rhs.detach().cpu().double().reshape(N * p, -1).numpy())
+    except RuntimeError:  # exactly singular
+        return rhs, False
+    x = torch.from_numpy(np.ascontiguousarray(x)).to(rhs).reshape(rhs.shape)
+    return x, bool(torch.isfinite(x).all())
+
+
+def _solve(sys: _System, rhs, method: str, band: int, cr=None):
+    """``rhs (N, p)`` -> ``(x (N, p), ok)``; the low-rank part by Woodbury:
+    ``(B + U Uᵀ)⁻¹ = B⁻¹ − B⁻¹U (I + Uᵀ B⁻¹ U)⁻¹ Uᵀ B⁻¹`` (B SPD, the capacitance SPD too)."""
+    if method == "dense":
+        x, ok = _solve_dense(sys, rhs[..., None])
+        return x[..., 0], ok
+    if method == "splu":
+        x, ok = _solve_splu(sys, rhs[..., None])
+        return x[..., 0], ok
+    if method == "banded":
+        return _solve_banded(sys, rhs, cr)
+    R = rhs[..., None] if sys.U is None else torch.cat([rhs[..., None], sys.U], -1)
+    Y, ok = _solve_lapack_banded_B(sys, R, band)
+    if sys.U is None:
+        return Y[..., 0], ok
+    N, p, k = sys.U.shape
+    Uf = sys.U.reshape(N * p, k)
+    Yf = Y.reshape(N * p, k + 1)
+    cap = torch.eye(k, dtype=rhs.dtype, device=rhs.device) + Uf.mT @ Yf[:, 1:]
+    Lc, info = torch.linalg.cholesky_ex(cap)
+    corr = Yf[:, 1:] @ torch.cholesky_solve(Uf.mT @ Yf[:, :1], Lc)
+    return (Yf[:, :1] - corr).reshape(N, p), ok and bool(info == 0)
+
+
+def _choose(method: str, device, n_far: int, N: int, p: int, rd: int) -> str:
+    if method != "auto":
+        return method
+    if device.type != "cpu" or N * p <= 512:
+        return "dense"  # CUDA, or a system so small that op overhead dominates any structure
+    # the Woodbury part costs O(N p k²) for k long-edge residual rows: with 20 loop edges (k = 80,
+    # 120) banded and SuperLU tie at N = 1,000; with 100 loop edges at N = 5,000 SuperLU is ~7x
+    # faster (benchmarks/bench_pose_graph.py)
+    if n_far * rd <= 128:
+        return "banded"
+    try:
+        import scipy  # noqa: F401
+
+        return "splu"
+    except ImportError:  # pragma: no cover
+        return "banded"
+
+
+# --------------------------------------------------------------------------------------------
+# Levenberg-Marquardt (Ceres trust region, as VINS configures it)
+# --------------------------------------------------------------------------------------------
+
+def _lm(prob, x, fixed, iters, *, solver="auto", band=4, function_tolerance=1e-6, gradient_tolerance=1e-10,
+        parameter_tolerance=1e-8, initial_radius=1e4, adaptive=True, min_relative_decrease=1e-3):
+    """Minimise ``½ Σ ρ(|r_e|²)`` over the free nodes; returns ``(x, info)``."""
+    i, j, loop = prob.i, prob.j, prob.loop
+    N, p = x.shape[0], prob.p
+    free = ~fixed
+    dev, dt = x.device, x.dtype
+    far = (i - j).abs() > band
+    method = _choose(solver, dev, int(far.sum()), N, p, prob.rd)
+    if method in ("dense", "splu"):
+        far = torch.zeros_like(far)
+    near = ~far
+    ni, nj = i[near], j[near]
+    fi, fj = i[far], j[far]
+    eye = torch.eye(p, dtype=dt, device=dev)
+    cr = _BandedCR(N, p, band, ni, nj, dt, dev) if method == "banded" else None
+
+    def evaluate(xx):
+        r = prob.residual(xx)
+        return 0.5 * _huber((r * r).sum(-1), loop)[0].sum()
+
+    ij = torch.cat([i, j])
+    near_idx = near.nonzero()[:, 0]
+    far_idx = far.nonzero()[:, 0]
+    # fixed nodes are Ceres constant blocks: their columns vanish from J
+    colmask = torch.cat([free[i, None].expand(-1, p), free[j, None].expand(-1, p)], -1)[:, None, :].to(dt)
+
+    def linearize(xx):
+        r, Ji, Jj = prob.linearize(xx)
+        rho, rho1 = _huber((r * r).sum(-1), loop)
+        J = torch.cat([Ji, Jj], -1) * colmask  # (E, rd, 2p)
+        wJ = rho1[:, None, None] * J
+        He = J.mT @ wJ  # (E, 2p, 2p): [[Hii, Hij], [Hji, Hjj]] in one batched product
+        ge = (wJ.mT @ r[..., None])[..., 0]
+        g = x.new_zeros(N, p).index_add_(0, ij, torch.cat([ge[:, :p], ge[:, p:]]))
+        Hdiag = torch.cat([He[:, :p, :p], He[:, p:, p:]])
+        Hd_all = x.new_zeros(N, p, p).index_add_(0, ij, Hdiag)
+        Hij = He[:, :p, p:]
+        U = None
+        Hd_near = Hd_all
+        if far_idx.numel():
+            F = far_idx.numel()
+            Hd_near = Hd_all.index_add(0, torch.cat([fi, fj]), -torch.cat([He[far_idx, :p, :p], He[far_idx, p:, p:]]))
+            Hij = Hij[near_idx]
+            Jf = J[far_idx] * rho1[far_idx].sqrt()[:, None, None]
+            U = x.new_zeros(N, p, F, prob.rd)
+            ar = torch.arange(F, device=dev)
+            U[fi, :, ar, :] = Jf[..., :p].mT
+            U[fj, :, ar, :] = Jf[..., p:].mT
+            U = U.reshape(N, p, F * prob.rd)
+        return dict(cost=0.5 * rho.sum(), g=g, Hd_near=Hd_near, Hd_all=Hd_all, Hij=Hij, U=U, J=J, rho1=rho1)
+
+    lin = linearize(x)
+    cost = float(lin["cost"])
+    info = dict(cost_initial=cost, cost_final=cost, iterations=0, successful_steps=0, converged=False,
+                termination="max_iterations", solver=method, cost_history=[cost])
+    if not bool(free.any()) or i.numel() == 0:
+        info.update(converged=True, termination="no_free_parameters")
+        return x, info
+    if float(lin["g"].abs().max()) <= gradient_tolerance:
+        info.update(converged=True, termination="gradient_tolerance")
+        return x, info
+    radius, decrease = float(initial_radius), 2.0
+    fmask = free[:, None, None]
+    for it in range(1, iters + 1):
+        info["iterations"] = it
+        # Ceres LM: (JᵀJ + diag(JᵀJ)/radius) δ = −g, diag clamped to [1e-6, 1e32]
+        damp = lin["Hd_all"].diagonal(0, -2, -1).clamp(1e-6, 1e32) / radius
+        Hd = torch.where(fmask, lin["Hd_near"] + torch.diag_embed(damp), eye)
+        sys = _System(Hd, ni, nj, lin["Hij"], lin["U"])
+        delta, ok = _solve(sys, -lin["g"], method, band, cr)
+        delta = delta * free[:, None]
+        if ok:
+            Jd = (lin["J"] @ torch.cat([delta[i], delta[j]], -1)[..., None])[..., 0]
+            model = -((lin["g"] * delta).sum() + 0.5 * (lin["rho1"] * (Jd * Jd).sum(-1)).sum())
+            ok = bool(torch.isfinite(model)) and float(model) > 0
+        if not ok:  # invalid step: shrink the trust region (Ceres StepIsInvalid)
+            if adaptive:
+                radius, decrease = radius / decrease, decrease * 2.0
+            info["cost_history"].append(cost)
+            continue
+        if float(delta.norm()) <= parameter_tolerance * (float(x.norm()) + parameter_tolerance):
+            info.update(converged=True, termination="parameter_tolerance")
+            break
+        xc = torch.where(free[:, None], prob.plus(x, delta), x)
+        cost_c = float(evaluate(xc))
+        if abs(cost - cost_c) <= function_tolerance * abs(cost):
+            info.update(converged=True, termination="function_tolerance")
+            break
+        rel = (cost - cost_c) / float(model)
+        if rel > min_relative_decrease:
+            x = xc
+            info["successful_steps"] += 1
+            if adaptive:
+                radius = min(1e16, radius / max(1.0 / 3.0, 1.0 - (2.0 * rel - 1.0) ** 3))
+                decrease = 2.0
+            lin = linearize(x)
+            cost = float(lin["cost"])
+            info["cost_history"].append(cost)
+            if float(lin["g"].abs().max()) <= gradient_tolerance:
+                info.update(converged=True, termination="gradient_tolerance")
+                break
+        else:
+            if adaptive:
+                radius, decrease = radius / decrease, decrease * 2.0
+            info["cost_history"].append(cost)
+    info["cost_final"] = cost
+    info["gradient_max_norm"] = float(lin["g"].abs().max())
+    return x, info
+
+
+# --------------------------------------------------------------------------------------------
+# implicit-function backward
+# --------------------------------------------------------------------------------------------
+
+def _ift_setup(edge_cost, hess_args, total_cost, theta, fixed, i, j, N, p):
+    """Everything the implicit-function backward reuses across calls on one forward (autograd
+    asks once per output row in gradcheck / jacobian): the factor of the exact Hessian at the
+    optimum (torch.func per edge block; fixed rows = identity) and the VJP of the cost gradient
+    ``∇ₓF(x*, θ)`` w.r.t. ``θ`` (linearised once)."""
+    from torch.func import grad, hessian, vjp, vmap
+
+    (Hii, Hij), (_, Hjj) = vmap(hessian(edge_cost, argnums=(0, 1)))(*hess_args)
+    free = ~fixed
+    dt, dev = Hii.dtype, Hii.device
+    Hd = Hii.new_zeros(N, p, p).index_add_(0, i, Hii).index_add_(0, j, Hjj)
+    Hd = torch.where(free[:, None, None], Hd, torch.eye(p, dtype=dt, device=dev))
+    Hij = Hij * (free[i] & free[j])[:, None, None]
+    H = _dense_matrix(Hd, i, j, Hij)
+    L, info = torch.linalg.cholesky_ex(H)
+    # gauge freedom (no fixed node) or an indefinite Hessian: least-squares (pseudo-inverse) answer
+    Hinv = None if bool(info == 0) else torch.linalg.pinv(H, hermitian=True)
+    d0 = torch.zeros(N, p, dtype=dt, device=dev)
+    _, vjp_fn = vjp(lambda *th: grad(total_cost)(d0, *th), *theta)
+    return dict(L=L, Hinv=Hinv, vjp=vjp_fn, free=free)
+
+
+def _ift_grads(cache, v):
+    """``−(∂∇ₓF/∂θ)ᵀ H⁻¹ v`` for the output cotangent ``v (N, p)`` (fixed rows ignored)."""
+    N, p = v.shape
+    rhs = (v * cache["free"][:, None]).reshape(-1, 1)
+    lam = torch.cholesky_solve(rhs, cache["L"]) if cache["Hinv"] is None else cache["Hinv"] @ rhs
+    lam = lam.reshape(N, p) * cache["free"][:, None]
+    return [-g for g in cache["vjp"](lam)]
+
+
+class _Opt4(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, t, yaw, pitch, roll, t_meas, yaw_meas, i, j, is_loop, fixed, opts, box):
+        prob = _FourDof(pitch, roll, i, j, t_meas, yaw_meas, is_loop)
+        x0 = torch.cat([t, yaw[:, None]], -1)
+        o = dict(opts)
+        x, info = _lm(prob, x0, fixed, o.pop("iters"), **o)
+        box.update(info)
+        ctx.save_for_backward(t, yaw, pitch, roll, t_meas, yaw_meas, i, j, is_loop, fixed, x)
+        ctx.cache = None
+        return x[:, :3].clone(), x[:, 3].clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gt, gyaw):
+        t, yaw, pitch, roll, t_meas, yaw_meas, i, j, is_loop, fixed, x = ctx.saved_tensors
+        N = t.shape[0]
+        gt = gt if gt is not None else t.new_zeros(N, 3)
+        gyaw = gyaw if gyaw is not None else yaw.new_zeros(N)
+        if ctx.cache is None:
+            from torch.func import vmap
+
+            def total(d, t_in, yaw_in, pitch_, roll_, tm, ym):
+                # the fixed nodes' values are inputs (constants of the problem), the others the optimum
+                xb = torch.cat([torch.where(fixed[:, None], t_in, x[:, :3]),
+                                torch.where(fixed, yaw_in, x[:, 3])[:, None]], -1)
+                xx = xb + d
+                return vmap(_FourDof.edge_cost)(xx[i], xx[j], pitch_[i], roll_[i], tm, ym, is_loop).sum()
+
+            xb = torch.cat([torch.where(fixed[:, None], t, x[:, :3]), torch.where(fixed, yaw, x[:, 3])[:, None]], -1)
+            ctx.cache = _ift_setup(_FourDof.edge_cost, (xb[i], xb[j], pitch[i], roll[i], t_meas, yaw_meas, is_loop),
+                                   total, (t, yaw, pitch, roll, t_meas, yaw_meas), fixed, i, j, N, 4)
+        grads = _ift_grads(ctx.cache, torch.cat([gt, gyaw[:, None]], -1))
+        # fixed nodes are returned as given: their output gradient passes straight through
+        grads[0] = grads[0] + torch.where(fixed[:, None], gt, 0.0)
+        grads[1] = grads[1] + torch.where(fixed, gyaw, 0.0)
+        return (*grads, None, None, None, None, None, None)
+
+
+class _Opt6(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, t, q, t_meas, q_meas, i, j, is_loop, fixed, opts, box):
+        prob = _SixDof(i, j, t_meas, q_meas, is_loop)
+        o = dict(opts)
+        x, info = _lm(prob, torch.cat([t, q], -1), fixed, o.pop("iters"), **o)
+        box.update(info)
+        ctx.save_for_backward(t, q, t_meas, q_meas, i, j, is_loop, fixed, x)
+        ctx.cache = None
+        return x[:, :3].clone(), x[:, 3:].clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gt, gq):
+        t, q, t_meas, q_meas, i, j, is_loop, fixed, x = ctx.saved_tensors
+        N = t.shape[0]
+        gt = gt if gt is not None else t.new_zeros(N, 3)
+        gq = gq if gq is not None else q.new_zeros(N, 4)
+        qs = x[:, 3:]
+        if ctx.cache is None:
+            from torch.func import vmap
+
+            def total(d, t_in, q_in, tm, qm):
+                xb = torch.cat([torch.where(fixed[:, None], t_in, x[:, :3]), torch.where(fixed[:, None], q_in, qs)], -1)
+                return vmap(_SixDof.edge_cost)(d[i], d[j], xb[i], xb[j], tm, qm, is_loop).sum()
+
+            xb = torch.cat([torch.where(fixed[:, None], t, x[:, :3]), torch.where(fixed[:, None], q, qs)], -1)
+            z = x.new_zeros(i.shape[0], 6)
+            ctx.cache = _ift_setup(_SixDof.edge_cost, (z, z, xb[i], xb[j], t_meas, q_meas, is_loop), total,
+                                   (t, q, t_meas, q_meas), fixed, i, j, N, 6)
+        w, a, b, c = qs.unbind(-1)
+        # ∂((1, δ) ⊗ q)/∂δ (Ceres's QuaternionParameterization Jacobian), (N, 4, 3): the output
+        # cotangent of q in the tangent space of the optimum
+        Jp = torch.stack([-a, -b, -c, w, c, -b, -c, w, a, b, -a, w], -1).reshape(N, 4, 3)
+        grads = _ift_grads(ctx.cache, torch.cat([gt, (Jp.mT @ gq[..., None])[..., 0]], -1))
+        grads[0] = grads[0] + torch.where(fixed[:, None], gt, 0.0)
+        grads[1] = grads[1] + torch.where(fixed[:, None], gq, 0.0)
+        return (*grads, None, None, None, None, None, None)
+
+
+# --------------------------------------------------------------------------------------------
+# input checks
+# --------------------------------------------------------------------------------------------
+
+def _check_float(a, name, shape, ref=None):
+    if not isinstance(a, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(a).__name__}")
+    if tuple(a.shape) != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}, got {tuple(a.shape)}")
+    if not a.is_floating_point():
+        raise TypeError(f"{name}: expected a floating point tensor, got {a.dtype}")
+    if ref is not None and (a.dtype != ref.dtype or a.device != ref.device):
+        raise ValueError(f"{name}: expected {ref.dtype} on {ref.device} like t, got {a.dtype} on {a.device}")
+    bad = ~torch.isfinite(a.detach())
+    if bool(bad.any()):
+        k = int(bad.reshape(a.shape[0], -1).any(-1).nonzero()[0, 0]) if a.dim() else 0
+        raise DataError(f"{name}: non-finite value (NaN or inf) at row {k}")
+
+
+def _check_index(a, name, E, N, device):
+    if not isinstance(a, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(a).__name__}")
+    if a.dim() != 1 or (E is not None and a.shape[0] != E):
+        raise ValueError(f"{name}: expected shape ({'E' if E is None else E},), got {tuple(a.shape)}")
+    if a.dtype.is_floating_point or a.dtype == torch.bool or a.is_complex():
+        raise TypeError(f"{name}: expected an integer tensor, got {a.dtype}")
+    a = a.to(device=device, dtype=torch.int64)
+    if a.numel() and (int(a.min()) < 0 or int(a.max()) >= N):
+        raise ValueError(f"{name}: node index out of range [0, {N}) (min {int(a.min())}, max {int(a.max())})")
+    return a
+
+
+def _check_bool(a, name, n, device):
+    if not isinstance(a, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(a).__name__}")
+    if tuple(a.shape) != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {tuple(a.shape)}")
+    if a.dtype != torch.bool:
+        raise TypeError(f"{name}: expected a bool tensor, got {a.dtype}")
+    return a.to(device)
+
+
+def _check_edges(i, j, N, device):
+    i = _check_index(i, "i", None, N, device)
+    j = _check_index(j, "j", i.shape[0], N, device)
+    if bool((i == j).any()):
+        raise ValueError(f"i, j: edge {int((i == j).nonzero()[0, 0])} joins a node to itself")
+    return i, j
+
+
+def _check_opts(iters, solver, band):
+    if int(iters) != iters or iters < 0:
+        raise ValueError(f"iters: expected a non-negative integer, got {iters!r}")
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: expected one of {SOLVERS}, got {solver!r}")
+    if int(band) != band or band < 1:
+        raise ValueError(f"band: expected a positive integer, got {band!r}")
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------
+
+def sequential_edges(sequence: torch.Tensor, k: int = 4) -> Tuple[torch.Tensor, torch.Tensor]:
+    """VINS's sequential edges (§7.8.5): each window slot ``b`` to its previous ``k`` slots
+    ``b − 1 .. b − k`` that belong to the same sequence.
+
+    Convention:
+        sequence: ``(N,)`` int64, the keyframes' sequence ids in window (list) order.
+        Returns ``(i, j)``: ``(E,)`` int64 each, ``i = b − d`` (older node), ``j = b``, ordered
+        by ``b`` then ``d = 1..k`` as VINS adds them.
+    """
+    if not isinstance(sequence, torch.Tensor) or sequence.dim() != 1:
+        raise ValueError(f"sequence: expected shape (N,), got {tuple(getattr(sequence, 'shape', ()))}")
+    if int(k) != k or k < 0:
+        raise ValueError(f"k: expected a non-negative integer, got {k!r}")
+    N, dev = sequence.shape[0], sequence.device
+    b = torch.arange(N, device=dev)[:, None].expand(N, k)
+    a = b - torch.arange(1, k + 1, device=dev)[None, :]
+    ok = (a >= 0) & (sequence[a.clamp_min(0)] == sequence[b])
+    return a[ok], b[ok]
+
+
+def measurements_4dof(t: torch.Tensor, R: torch.Tensor, i: torch.Tensor, j: torch.Tensor
+                      ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Sequential-edge measurements from the vio poses (§7.8.5).
+
+    Convention:
+        t: ``(N, 3)`` vio ``T_w_i`` (m); R: ``(N, 3, 3)`` vio ``R_w_i``; i, j: ``(E,)`` int64.
+        Returns ``t_meas (E, 3) = R_iᵀ (t_j − t_i)`` and ``yaw_meas (E,) = yaw(R_j) − yaw(R_i)``
+        in degrees (not wrapped, as VINS).
+    """
+    _check_float(t, "t", (t.shape[0] if t.dim() == 2 else -1, 3))
+    N = t.shape[0]
+    _check_float(R, "R", (N, 3, 3), t)
+    i, j = _check_edges(i, j, N, t.device)
+    t_meas = (R[i].mT @ (t[j] - t[i])[..., None])[..., 0]
+    yaw = R_to_ypr(R)[:, 0]
+    return t_meas, yaw[j] - yaw[i]
+
+
+def measurements_6dof(t: torch.Tensor, q: torch.Tensor, i: torch.Tensor, j: torch.Tensor
+                      ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Sequential-edge measurements of loop_fusion's 6-DoF graph (§7.12).
+
+    Convention:
+        t: ``(N, 3)`` vio ``T_w_i`` (m); q: ``(N, 4)`` vio rotations w-first; i, j: ``(E,)`` int64.
+        Returns ``t_meas (E, 3) = R_iᵀ (t_j − t_i)`` and ``q_meas (E, 4) = q_i⁻¹ ⊗ q_j`` (w-first,
+        unit).
+    """
+    _check_float(t, "t", (t.shape[0] if t.dim() == 2 else -1, 3))
+    N = t.shape[0]
+    _check_float(q, "q", (N, 4), t)
+    i, j = _check_edges(i, j, N, t.device)
+    q = q / q.norm(dim=-1, keepdim=True)
+    t_meas = (quat_to_R(q[i]).mT @ (t[j] - t[i])[..., None])[..., 0]
+    return t_meas, _qmul(_qconj(q[i]), q[j])
+
+
+def _opts(iters, solver, band, kw):
+    _check_opts(iters, solver, band)
+    bad = set(kw) - {"function_tolerance", "gradient_tolerance", "parameter_tolerance", "initial_radius",
+                     "adaptive", "min_relative_decrease"}
+    if bad:
+        raise TypeError(f"unexpected keyword argument(s) {sorted(bad)}")
+    return dict(iters=int(iters), solver=solver, band=int(band), **kw)
+
+
+def optimize_4dof(t: torch.Tensor, yaw: torch.Tensor, pitch: torch.Tensor, roll: torch.Tensor,
+                  i: torch.Tensor, j: torch.Tensor, t_meas: torch.Tensor, yaw_meas: torch.Tensor,
+                  is_loop: torch.Tensor, fixed: torch.Tensor, iters: int = 5, return_info: bool = False,
+                  *, solver: str = "auto", band: int = 4, **ceres_options):
+    """VINS ``optimize4DoF`` (§7.8): optimise ``t`` and ``yaw`` of every free node.
+
+    Residual of edge ``e`` (a = ``i[e]``, b = ``j[e]``, ``R_a = ypr2R(yaw_a, pitch_a, roll_a)``):
+    ``r_t = R_aᵀ (t_b − t_a) − t_meas``, ``r_ψ = w · NormalizeAngle(yaw_b − yaw_a − yaw_meas)``
+    with Ceres's single wrap, ``w = 1/10`` on loop edges (1 otherwise); loop edges carry
+    HuberLoss(0.1) on the 4-vector, sequential edges no loss. Cost ``½ Σ ρ(|r|²)``.
+
+    Convention:
+        t: ``(N, 3)`` float, metres (initial values: the vio poses as VINS).
+        yaw, pitch, roll: ``(N,)`` degrees; pitch and roll are constants.
+        i, j: ``(E,)`` int64 node indices; t_meas ``(E, 3)`` m; yaw_meas ``(E,)`` degrees.
+        is_loop: ``(E,)`` bool; fixed: ``(N,)`` bool (constant nodes).
+        iters: Ceres ``max_num_iterations`` (VINS: 5). solver: ``"auto" | "dense" | "banded" |
+        "lapack_banded" | "splu"``; band: node distance treated as banded (VINS: 4 neighbours).
+        ceres_options: ``function_tolerance=1e-6``, ``gradient_tolerance=1e-10``,
+        ``parameter_tolerance=1e-8``, ``initial_radius=1e4``, ``min_relative_decrease=1e-3``,
+        ``adaptive=True`` (False keeps the damping at ``diag/initial_radius``: for comparisons).
+        Returns ``(t (N, 3), yaw (N,))`` (yaw single-wrapped after each update; fixed nodes are
+        returned unchanged), plus with ``return_info`` a dict: ``cost_initial``, ``cost_final``,
+        ``iterations``, ``successful_steps``, ``converged``, ``termination``, ``solver``,
+        ``cost_history``, ``gradient_max_norm``. Differentiable w.r.t. t_meas, yaw_meas, pitch,
+        roll and the fixed nodes' t/yaw (implicit-function theorem, see the module docstring).
+
+    Raises:
+        ValueError: wrong shapes, index out of range, self edges, bad options.
+        DataError: a NaN/inf in a pose or measurement (names the argument and row).
+    """
+    _check_float(t, "t", (t.shape[0] if t.dim() == 2 else -1, 3))
+    N = t.shape[0]
+    for name, a in (("yaw", yaw), ("pitch", pitch), ("roll", roll)):
+        _check_float(a, name, (N,), t)
+    i, j = _check_edges(i, j, N, t.device)
+    E = i.shape[0]
+    _check_float(t_meas, "t_meas", (E, 3), t)
+    _check_float(yaw_meas, "yaw_meas", (E,), t)
+    is_loop = _check_bool(is_loop, "is_loop", E, t.device)
+    fixed = _check_bool(fixed, "fixed", N, t.device)
+    opts = _opts(iters, solver, band, ceres_options)
+    box: Dict = {}
+    t_out, yaw_out = _Opt4.apply(t, yaw, pitch, roll, t_meas, yaw_meas, i, j, is_loop, fixed, opts, box)
+    return (t_out, yaw_out, box) if return_info else (t_out, yaw_out)
+
+
+def optimize_6dof(t: torch.Tensor, q: torch.Tensor, i: torch.Tensor, j: torch.Tensor, t_meas: torch.Tensor,
+                  q_meas: torch.Tensor, is_loop: torch.Tensor, fixed: torch.Tensor, iters: int = 5,
+                  return_info: bool = False, *, solver: str = "auto", band: int = 4, **ceres_options):
+    """loop_fusion's ``optimize6DoF`` (§7.12, ``imu: 0``): optimise ``t`` and ``q`` of every free node.
+
+    RelativeRTError of edge ``e`` (a = ``i[e]``, b = ``j[e]``):
+    ``r_t = (R_aᵀ (t_b − t_a) − t_meas) / 0.1``, ``r_q = 2 vec(q_meas⁻¹ ⊗ q_a⁻¹ ⊗ q_b) / 0.01``;
+    loop edges carry HuberLoss(0.1) on the 6-vector. Quaternion update as Ceres's
+    QuaternionParameterization (``q ← (cos|δ|, sin|δ| δ/|δ|) ⊗ q``), renormalised.
+
+    Convention:
+        t: ``(N, 3)`` float, metres; q: ``(N, 4)`` w-first (normalised on input).
+        i, j: ``(E,)`` int64; t_meas ``(E, 3)`` m; q_meas ``(E, 4)`` w-first unit.
+        is_loop: ``(E,)`` bool; fixed: ``(N,)`` bool. iters, solver, band, ceres_options and the
+        info dict as :func:`optimize_4dof`.
+        Returns ``(t (N, 3), q (N, 4))`` unit quaternions. Differentiable w.r.t. t_meas, q_meas and
+        the fixed nodes' t/q (implicit-function theorem).
+
+    Raises:
+        ValueError: wrong shapes, index out of range, self edges, bad options.
+        DataError: a NaN/inf or zero quaternion in a pose or measurement.
+    """
+    _check_float(t, "t", (t.shape[0] if t.dim() == 2 else -1, 3))
+    N = t.shape[0]
+    _check_float(q, "q", (N, 4), t)
+    i, j = _check_edges(i, j, N, t.device)
+    E = i.shape[0]
+    _check_float(t_meas, "t_meas", (E, 3), t)
+    _check_float(q_meas, "q_meas", (E, 4), t)
+    for name, a in (("q", q), ("q_meas", q_meas)):
+        zero = a.detach().norm(dim=-1) < 1e-12
+        if bool(zero.any()):
+            raise DataError(f"{name}: zero quaternion at row {int(zero.nonzero()[0, 0])}")
+    is_loop = _check_bool(is_loop, "is_loop", E, t.device)
+    fixed = _check_bool(fixed, "fixed", N, t.device)
+    opts = _opts(iters, solver, band, ceres_options)
+    box: Dict = {}
+    qn = q / q.norm(dim=-1, keepdim=True)
+    qmn = q_meas / q_meas.norm(dim=-1, keepdim=True)
+    t_out, q_out = _Opt6.apply(t, qn, t_meas, qmn, i, j, is_loop, fixed, opts, box)
+    return (t_out, q_out, box) if return_info else (t_out, q_out)
