@@ -6,6 +6,12 @@ VINS front end on one or more sequences at once (B streams in one batched tracke
 (see ``torch_frontend.outputs``). ``torch-frontend demo`` does the same on the sample EuRoC frames
 shipped with the package.
 
+``torch-frontend loop [CONFIG] (--euroc DIR | --images DIR | --bag FILE)... --poses FILE... --out DIR
+(--vocabulary FILE | --train-vocabulary)`` runs loop closure (VINS's pose graph) on images plus
+their VIO poses and writes the loop-corrected trajectory, the loops, the pose graph, a summary and
+plots (``torch_frontend.loop.run``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
+does the same on a rendered sequence that revisits places.
+
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
 wrong size, an empty sequence) print one line ``torch-frontend: error: ...`` on stderr and exit
 with a non-zero code: 2 for usage and config errors, 1 for data errors, 130 when interrupted.
@@ -212,9 +218,66 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_loop(args: argparse.Namespace) -> int:
+    from .loop.run import format_loop_summary, run_loop
+
+    sources = args.sources or []
+    poses = args.poses or []
+    gts = args.ground_truth
+    if not sources:
+        raise _UsageError("no input: give at least one --euroc DIR, --images DIR or --bag FILE")
+    if len(poses) != len(sources):
+        raise _UsageError(f"--poses: expected one poses file per input, in the same order ({len(sources)} "
+                          f"input{'s' if len(sources) != 1 else ''}), got {len(poses)}")
+    if gts is not None and len(gts) != len(sources):
+        raise _UsageError(f"--ground-truth: expected one file per input, in the same order ({len(sources)} "
+                          f"input{'s' if len(sources) != 1 else ''}), got {len(gts)}")
+    if args.vocabulary is None and not args.train_vocabulary:
+        raise _UsageError("no vocabulary: give --vocabulary FILE (VINS's brief_k10L6.bin, or a .npz from "
+                          "'torch-frontend vocabulary train') or --train-vocabulary")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise _UsageError(f"--max-frames must be >= 1, got {args.max_frames}")
+    dev = _resolve_device(args.device)
+    run = run_loop(
+        args.config, sources, poses, args.out, vocabulary=args.vocabulary, train_vocabulary=args.train_vocabulary,
+        vocabulary_k=args.train_k, vocabulary_L=args.train_L, load_graph=args.load_graph, ground_truth=gts,
+        separate_graphs=args.separate_graphs, mode=args.pose_graph, device=dev, tracker_mode=args.tracker_mode,
+        keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
+        keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
+        max_frames=args.max_frames, fps=args.fps, topic=args.topic, camera=args.camera,
+        skip_bad_frames=args.skip_bad_frames, progress=False if args.no_progress else None,
+    )
+    print(format_loop_summary(run.summary))
+    return 0
+
+
+def _cmd_demo_loop(args: argparse.Namespace) -> int:
+    import torch
+
+    from .loop.run import DEMO_RENDER, demo_loop, format_loop_summary
+
+    # One intra-op thread: the demo's tensors are small (320x240 images, ~100 points), so extra
+    # threads only add synchronisation, and on a busy machine each of the tracker's many small ops
+    # then waits for a descheduled thread (measured: > 10 min instead of ~40 s with 2 threads
+    # while another process kept one of 2 cores busy).
+    torch.set_num_threads(1)
+    out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
+    print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
+          f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
+    run = demo_loop(out, two_sequences=args.two_sequences, separate_graphs=args.separate_graphs,
+                    device=str(_resolve_device(args.device)), progress=False if args.no_progress else None,
+                    run_kwargs={"tracker_mode": args.mode})
+    print(format_loop_summary(run.summary))
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .config import load_config
 
+    if args.loop:
+        return _cmd_demo_loop(args)
+    if args.two_sequences or args.separate_graphs:
+        raise _UsageError("--two-sequences and --separate-graphs go with --loop")
     cfg = load_config(args.config or default_config_path())
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
@@ -447,7 +510,87 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
     _add_run_options(demo, "out/demo")
+    dloop = demo.add_argument_group("loop closure demo")
+    dloop.add_argument("--loop", action="store_true",
+                       help="instead: render a synthetic sequence that revisits places (two laps, drifted VIO "
+                            "poses, ground truth) and run 'loop' on it; writes the 'loop' outputs into --out "
+                            "(default: out/demo_loop)")
+    dloop.add_argument("--two-sequences", action="store_true",
+                       help="with --loop: the two laps are two sequences (streams) that share one map")
+    dloop.add_argument("--separate-graphs", action="store_true",
+                       help="with --loop --two-sequences: one pose graph per sequence instead of a shared map")
     demo.set_defaults(func=_cmd_demo)
+
+    loop = sub.add_parser(
+        "loop",
+        help="loop closure: images + a VIO trajectory -> loop-corrected trajectory (no ROS)",
+        description="Track the images, take keyframes with the given VIO poses (3-D points triangulated "
+                    "from the tracks), detect and verify loops (BRIEF bag of words, PnP) and optimise VINS's "
+                    "pose graph. Writes vins_result_loop.csv, trajectory_loop.tum, trajectory_vio.tum, "
+                    "loops.csv, pose_graph/, summary.json, trajectory_top.png and "
+                    "place_recognition_scores.png into --out (per-stream files in stream<b>/ for several "
+                    "inputs). Inputs may be repeated, each with its own --poses (same order).",
+        epilog="example: torch-frontend loop configs/euroc.yaml --euroc MH_01_easy --poses "
+               "vins_result_no_loop.csv --vocabulary brief_k10L6.bin --ground-truth "
+               "MH_01_easy/mav0/state_groundtruth_estimate0/data.csv --out out/mh01_loop",
+    )
+    loop.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
+                      help="VINS config YAML (camera and camera-to-body extrinsic); optional with --euroc, "
+                           "whose sensor.yaml then gives both")
+    lsrc = loop.add_argument_group("inputs (repeatable, at least one; one --poses per input)")
+    lsrc.add_argument("--euroc", dest="sources", action=_SourceAction, const="euroc", metavar="DIR",
+                      help="EuRoC / TUM-VI ASL folder")
+    lsrc.add_argument("--bag", dest="sources", action=_SourceAction, const="bag", metavar="FILE",
+                      help="ROS 1 .bag file or ROS 2 bag folder")
+    lsrc.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
+                      help="folder of images (timestamps from numeric names, or --fps)")
+    lsrc.add_argument("--poses", action="append", metavar="FILE",
+                      help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, or EuRoC "
+                           "ground truth (format detected)")
+    lsrc.add_argument("--ground-truth", action="append", default=None, metavar="FILE",
+                      help="reference trajectory of the input (any of the same formats): ATE before/after")
+    voc = loop.add_mutually_exclusive_group()
+    voc.add_argument("--vocabulary", type=Path, default=None, metavar="FILE",
+                     help="BRIEF vocabulary: VINS's brief_k10L6.bin, a .npz from 'vocabulary train', or a "
+                          "DBoW2 YAML")
+    voc.add_argument("--train-vocabulary", action="store_true",
+                     help="train the vocabulary on this run's keyframes (k --train-k, L --train-L)")
+    loop.add_argument("--train-k", type=_positive_int, default=10, metavar="K",
+                      help="with --train-vocabulary: branching factor (default: 10)")
+    loop.add_argument("--train-L", type=_positive_int, default=4, metavar="L",
+                      help="with --train-vocabulary: depth (default: 4)")
+    loop.add_argument("--load-graph", type=Path, default=None, metavar="DIR",
+                      help="start from a saved pose graph (VINS format, e.g. an earlier run's pose_graph/)")
+    loop.add_argument("--separate-graphs", action="store_true",
+                      help="one pose graph per input instead of one shared map (VINS's multi-sequence merge)")
+    loop.add_argument("--pose-graph", choices=("4dof", "6dof"), default="4dof",
+                      help="4dof: VIO with IMU (x, y, z, yaw), 6dof: without IMU (default: 4dof)")
+    loop.add_argument("--keyframe-distance", type=float, default=0.2, metavar="M",
+                      help="new keyframe when the body moved more than M metres ... (default: 0.2)")
+    loop.add_argument("--keyframe-angle", type=float, default=10.0, metavar="DEG",
+                      help="... or turned more than DEG degrees since the last keyframe (default: 10)")
+    loop.add_argument("--keyframe-every", type=_positive_int, default=None, metavar="N",
+                      help="instead: every N-th published frame with a pose")
+    loop.add_argument("--max-pose-gap", type=_positive_float, default=0.5, metavar="S",
+                      help="interpolate poses across gaps of at most S seconds (default: 0.5)")
+    loop.add_argument("--pnp", choices=("torch", "opencv"), default="torch",
+                      help="loop verification PnP-RANSAC backend (default: torch)")
+    loop.add_argument("--tracker-mode", choices=("mono", "fusion"), default="mono",
+                      help="front end rules: VINS-Mono or VINS-Fusion tracker (default: mono)")
+    loop.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                      help="frame rate of --images folders (timestamps i/F)")
+    loop.add_argument("--topic", default=None, metavar="T",
+                      help="image topic of --bag inputs (default: the config's image_topic)")
+    loop.add_argument("--camera", default="cam0", metavar="CAM",
+                      help="camera folder of --euroc inputs (default: cam0)")
+    loop.add_argument("--skip-bad-frames", action="store_true",
+                      help="skip unreadable/corrupt frames instead of stopping")
+    loop.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
+                      help="stop after N frames per stream")
+    loop.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    loop.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    loop.add_argument("--no-progress", action="store_true", help="no progress bar")
+    loop.set_defaults(func=_cmd_loop)
 
     vocab = sub.add_parser(
         "vocabulary",

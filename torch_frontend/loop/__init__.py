@@ -10,6 +10,9 @@ Part 2, verification and the pose graph: ``KeyFrame`` and ``match_brief`` (VINS'
 the pure optimisers ``optimize_4dof`` / ``optimize_6dof``; ``triangulate_points`` for keyframes
 built from tracks and poses; ``render_loop_sequence`` renders a revisiting test sequence.
 
+Part 3, what users run: ``run_loop`` (front end -> keyframes -> place recognition -> pose graph ->
+outputs, as ``torch-frontend loop``) and ``demo_loop`` (``torch-frontend demo --loop``).
+
 Names are imported lazily, so ``import torch_frontend.loop`` stays cheap.
 """
 
@@ -59,6 +62,10 @@ _EXPORTS = {
     "wrap_angle_once": "geometry",
     "yaw_to_R": "geometry",
     "ypr_to_R": "geometry",
+    "LoopRun": "run",
+    "demo_loop": "run",
+    "run_loop": "run",
+    "write_loop_outputs": "report",
 }
 
 __all__ = sorted(_EXPORTS)
