@@ -18,6 +18,7 @@ $(STAMP): $(VPY) pyproject.toml
 
 demo: $(STAMP)
 	$(VENV)/bin/torch-frontend demo
+	$(VENV)/bin/torch-frontend demo --loop
 
 test: $(STAMP)
 	$(VPY) -m pytest -q

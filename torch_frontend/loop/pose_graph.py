@@ -193,11 +193,14 @@ def verify_loops(
                 reason = "translation"
             else:
                 reason = "accepted"
+            q_k = rel_q[k].numpy().copy()
+            if not ok:  # no pose: report the identity, not the initial guess echoed back
+                t_k, q_k, yaw_k = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), 0.0
             m = inl[k]
             cur_uv = curs[b].point_2d_uv[m[: curs[b].point_2d_uv.shape[0]]].double().numpy()
             old_uv = olds[b].keypoints.double()[midx[b][m].clamp_min(0)].numpy() if olds[b].keypoints.shape[0] else None
             results[b] = LoopResult(curs[b].index, olds[b].index, float(scores[b]), reason == "accepted", reason,
-                                    int(n_match[b]), ni, t_k.copy(), rel_q[k].numpy().copy(), yaw_k, cur_uv, old_uv)
+                                    int(n_match[b]), ni, t_k.copy(), q_k, yaw_k, cur_uv, old_uv)
     for b in range(B):
         if results[b] is None:
             results[b] = LoopResult(curs[b].index, olds[b].index, float(scores[b]), False, "few_matches",
