@@ -21,10 +21,11 @@ edges; the normal equations are assembled per node block with ``index_add``/``in
 Linear solvers (``solver=``): ``"dense"`` (torch Cholesky of the full ``pN × pN`` matrix; the CUDA
 default), ``"banded"`` (torch block cyclic reduction of the block-tridiagonal matrix formed by the
 edges between nodes at most ``band`` slots apart, plus a Woodbury correction for the other edges,
-i.e. the few long loop edges; the CPU default, see ``benchmarks/bench_pose_graph.py``),
-``"lapack_banded"`` (scipy ``solveh_banded`` + the same Woodbury correction) and ``"splu"``
-(scipy.sparse SuperLU). ``"auto"`` picks dense on CUDA and for tiny graphs, banded on CPU, and
-SuperLU (when scipy is installed) when the long edges are too many for a low-rank correction.
+i.e. the few long loop edges; the CPU default without scipy), ``"lapack_banded"`` (scipy's LAPACK
+band Cholesky ``dpbtrf`` / ``dtbtrs`` + the same Woodbury correction; the CPU default with scipy)
+and ``"splu"`` (scipy.sparse SuperLU). ``"auto"`` picks dense on CUDA and for tiny graphs, on CPU
+lapack_banded (banded without scipy), and SuperLU (when scipy is installed) when the long edges
+are too many for a low-rank correction (see ``benchmarks/bench_pose_graph.py``).
 
 Gradients: the returned optimum is differentiable w.r.t. the measurements (and the constants:
 pitch/roll, fixed nodes' poses) by the implicit-function theorem: backward solves ``H λ = v``
@@ -123,38 +124,47 @@ class _FourDof:
         z = torch.zeros_like(pitch)
         # R_a = Rz(yaw_a) Ry(pitch_a) Rx(roll_a): the constant Ry Rx part per edge, transposed
         self.A = ypr_to_R(torch.stack([z, pitch, roll], -1))[i].mT.contiguous()
+        self.AT = self.A.permute(1, 2, 0).contiguous()  # (3, 3, E)
+        self.t_meas_t = t_meas.T.contiguous()  # (3, E)
         self.w = torch.where(is_loop, LOOP_YAW_WEIGHT, 1.0).to(pitch.dtype)
 
     def _parts(self, x):
-        i, j = self.i, self.j
-        xi, xj = x[i], x[j]
-        d = xj[:, :3] - xi[:, :3]
+        # elementwise products with the edge index last (batched (E, 3, 3) bmm's are slow on CPU)
+        xi, xj = x[self.i], x[self.j]
+        d = (xj[:, :3] - xi[:, :3]).T  # (3, E)
         psi = xi[:, 3] * _DEG
         c, s = torch.cos(psi), torch.sin(psi)
-        u = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], -1)  # Rz(ψ)ᵀ d
-        rt = (self.A @ u[..., None])[..., 0] - self.t_meas
+        AT = self.AT
+        u0, u1 = c * d[0] + s * d[1], -s * d[0] + c * d[1]  # Rz(ψ)ᵀ d
+        rt = AT[:, 0] * u0 + AT[:, 1] * u1 + AT[:, 2] * d[2] - self.t_meas_t
         rpsi = self.w * wrap_angle_once(xj[:, 3] - xi[:, 3] - self.yaw_meas)
-        return torch.cat([rt, rpsi[:, None]], -1), c, s, d
+        return torch.cat([rt, rpsi[None]]), c, s, d
 
-    def residual(self, x):
+    def residual_t(self, x):
+        """``(rd, E)`` residuals, edge index last."""
         return self._parts(x)[0]
 
-    def linearize(self, x):
+    def residual(self, x):
+        return self.residual_t(x).T
+
+    def linearize_t(self, x):
+        """``(r (rd, E), J (rd, 2p, E))`` with ``J = [∂r/∂x_i, ∂r/∂x_j]``, edge index last."""
         r, c, s, d = self._parts(x)
-        E = r.shape[0]
-        o, z = torch.ones_like(c), torch.zeros_like(c)
-        RzT = torch.stack([c, s, z, -s, c, z, z, z, o], -1).reshape(E, 3, 3)
-        RiT = self.A @ RzT
-        du = torch.stack([-s * d[:, 0] + c * d[:, 1], -c * d[:, 0] - s * d[:, 1], z], -1) * _DEG
-        dpsi = (self.A @ du[..., None])[..., 0]
-        Ji = r.new_zeros(E, 4, 4)
-        Jj = r.new_zeros(E, 4, 4)
-        Ji[:, :3, :3] = -RiT
-        Ji[:, :3, 3] = dpsi
-        Ji[:, 3, 3] = -self.w
-        Jj[:, :3, :3] = RiT
-        Jj[:, 3, 3] = self.w
-        return r, Ji, Jj
+        AT = self.AT
+        RiT = torch.stack([AT[:, 0] * c - AT[:, 1] * s, AT[:, 0] * s + AT[:, 1] * c, AT[:, 2]], 1)  # A Rz(ψ)ᵀ
+        du0, du1 = (-s * d[0] + c * d[1]) * _DEG, (-c * d[0] - s * d[1]) * _DEG
+        J = r.new_zeros(4, 8, r.shape[1])
+        J[:3, :3] = -RiT
+        J[:3, 3] = AT[:, 0] * du0 + AT[:, 1] * du1
+        J[:3, 4:7] = RiT
+        J[3, 3] = -self.w
+        J[3, 7] = self.w
+        return r, J
+
+    def linearize(self, x):
+        r, J = self.linearize_t(x)
+        J = J.permute(2, 0, 1)
+        return r.T, J[..., :4], J[..., 4:]
 
     @staticmethod
     def plus(x, dx):
@@ -193,6 +203,29 @@ class _SixDof:
 
     def residual(self, x):
         return self._parts(x)[0]
+
+    def residual_t(self, x):
+        return self._parts(x)[0].T
+
+    def linearize_t(self, x):
+        """``(r (rd, E), J (rd, 2p, E))`` as :meth:`linearize`, edge index last and with
+        elementwise products (batched (E, 3, 3) bmm's are slow on CPU)."""
+        xi, xj = x[self.i], x[self.j]
+        RiT = quat_to_R(xi[:, 3:]).permute(2, 1, 0)  # (3, 3, E): RiT[a, b] = R_i[b, a]
+        Rj = quat_to_R(xj[:, 3:]).permute(1, 2, 0)  # (3, 3, E): Rj[c] = row c of R_j
+        d = (xj[:, :3] - xi[:, :3]).T
+        rt = ((RiT * d).sum(1) - self.t_meas.T) / T_SCALE_6DOF
+        e = _qmul(_qmul(self.qm_inv, _qconj(xi[:, 3:])), xj[:, 3:]).T  # (4, E)
+        r = torch.cat([rt, 2.0 * e[1:] / Q_SCALE_6DOF])
+        J = r.new_zeros(6, 12, r.shape[1])
+        J[:3, :3] = -RiT / T_SCALE_6DOF
+        J[:3, 3:6] = torch.linalg.cross(RiT, d.expand(3, 3, -1), dim=1) * (2.0 / T_SCALE_6DOF)  # Rᵢᵀ[d]×
+        J[:3, 6:9] = RiT / T_SCALE_6DOF
+        # M = (e_w I + [e_v]×) R_jᵀ: column c is e_w R_j[c] + e_v × R_j[c]
+        M = (e[0] * Rj + torch.linalg.cross(e[1:].expand(3, 3, -1), Rj, dim=1)).transpose(0, 1) * (2.0 / Q_SCALE_6DOF)
+        J[3:, 3:6] = -M
+        J[3:, 9:12] = M
+        return r, J
 
     def linearize(self, x):
         r, Ri, Rj, d, e = self._parts(x)
@@ -237,7 +270,9 @@ class _SixDof:
 class _System:
     """Block normal equations. ``Hd (N, p, p)`` diagonal blocks of the matrix part, ``(ei, ej,
     Hij (M, p, p))`` off-diagonal blocks (row node ei, column node ej; the transpose is implied),
-    ``U (N, p, k)`` or None: the low-rank part ``U Uᵀ`` (long edges, Woodbury)."""
+    ``U`` or None: the low-rank part ``U Uᵀ`` (long edges, Woodbury), passed compactly as the long
+    edges' weighted Jacobians ``(rd, 2p, F)`` (column ``f·rd + r`` of U holds row r of edge f's at
+    its two nodes); the banded solvers scatter it into their right-hand-side buffers."""
 
     def __init__(self, Hd, ei, ej, Hij, U):
         self.Hd, self.ei, self.ej, self.Hij, self.U = Hd, ei, ej, Hij, U
@@ -339,6 +374,27 @@ class _BandedCR:
         Lf, info = torch.linalg.cholesky_ex(D)
         return (levels, Lf), bool(ok & (info == 0).all())
 
+    def set_far(self, fi, fj, rd):
+        """Scatter pattern of the far edges' Jacobian ``(rd, 2p, F)`` into the right-hand sides
+        ``[rhs, U]`` in block layout ``(Kp·s, p, 1 + k)``, ``k = F·rd`` (U column ``f·rd + r``)."""
+        F, p = fi.shape[0], self.p
+        self.k = k = F * rd
+        a = torch.arange(p, device=fi.device)[None, :, None]
+        col = 1 + torch.arange(F, device=fi.device)[None, None, :] * rd + torch.arange(rd, device=fi.device)[:, None, None]
+        self.pos_u = torch.cat([(fi[None, None, :] * p + a) * (k + 1) + col,
+                                (fj[None, None, :] * p + a) * (k + 1) + col], 1).reshape(-1)
+        self.rbuf = None
+
+    def far_blocks(self, rhs, Jf):
+        """``[rhs, U]`` as ``(Kp, m, 1 + k)`` zero-padded, in a buffer reused across iterations
+        (the forward elimination does not write into it)."""
+        if self.rbuf is None:
+            self.rbuf = rhs.new_zeros(self.Kp * self.s, self.p, self.k + 1)
+        b = self.rbuf
+        b.view(-1)[self.pos_u] = Jf.reshape(-1)
+        b[:self.N, :, 0] = rhs
+        return b.reshape(self.Kp, self.m, -1)
+
     def to_blocks(self, rhs):
         """``(N, p, r)`` -> ``(Kp, m, r)`` zero-padded."""
         b = rhs.new_zeros(self.Kp * self.s, self.p, rhs.shape[-1])
@@ -372,52 +428,115 @@ class _BandedCR:
 
 def _solve_banded(sys: _System, rhs, cr: _BandedCR):
     """``(B + U Uᵀ) x = rhs`` with Woodbury on top of the cyclic-reduction factor of B:
-    ``x = L⁻ᵀ (w_r − W_U c)``, ``c = (I + W_Uᵀ W_U)⁻¹ W_Uᵀ w_r``, ``W = L⁻¹ [rhs, U]``."""
+    ``x = L⁻ᵀ (w_r − W_U c)``, ``c = (I + W_Uᵀ W_U)⁻¹ W_Uᵀ w_r``, ``W = L⁻¹ [rhs, U]``.
+    ``sys.U`` is the far edges' compact ``(rd, 2p, F)`` Jacobian (see :meth:`_BandedCR.set_far`)."""
     fac, ok = cr.factor(sys.Hd, sys.Hij)
-    R = rhs[..., None] if sys.U is None else torch.cat([rhs[..., None], sys.U], -1)
-    ws = cr.forward(fac, cr.to_blocks(R))
+    ws = cr.forward(fac, cr.to_blocks(rhs[..., None]) if sys.U is None else cr.far_blocks(rhs, sys.U))
     if sys.U is not None:
-        k = sys.U.shape[-1]
-        Wr = torch.cat([w[..., :1].reshape(-1, 1) for w in ws])
-        WU = torch.cat([w[..., 1:].reshape(-1, k) for w in ws])
-        cap = torch.eye(k, dtype=rhs.dtype, device=rhs.device) + WU.mT @ WU
+        k = cr.k
+        # [W_Uᵀ w_r, W_UᵀW_U] summed over the forward pieces: one product per piece, no concatenation
+        P = sum(w.reshape(-1, k + 1)[:, 1:].mT @ w.reshape(-1, k + 1) for w in ws)
+        cap = torch.eye(k, dtype=rhs.dtype, device=rhs.device) + P[:, 1:]
         Lc, info = torch.linalg.cholesky_ex(cap)
         ok = ok and bool(info == 0)
-        c = torch.cholesky_solve(WU.mT @ Wr, Lc)
+        c = torch.cholesky_solve(P[:, :1], Lc)
         ws = [w[..., :1] - w[..., 1:] @ c for w in ws]
     return cr.back(fac, ws)[..., 0], ok
 
 
-def _solve_lapack_banded_B(sys: _System, rhs, band: int):
-    import numpy as np
-    from scipy.linalg import LinAlgError, solveh_banded
+class _LapackBanded:
+    """LAPACK band Cholesky (``dpbtrf``) of the matrix part B, for the edges at most ``band``
+    slots apart, plus Woodbury for the low-rank part: only the forward triangular solves
+    ``W = L⁻¹ [rhs, U]`` are needed for the capacitance (``UᵀB⁻¹U = W_Uᵀ W_U``), then one
+    backward solve ``x = L⁻ᵀ (w_r − W_U c)`` — half of ``solveh_banded`` on all the columns.
+    The scatter pattern of the blocks into LAPACK's lower band storage is built once per graph.
+    """
 
-    N, p = sys.Hd.shape[:2]
-    u = band * p + p - 1
-    n = N * p
-    ab = torch.zeros(u + 1, n, dtype=torch.float64)
-    a = torch.arange(p)
-    node = torch.arange(N)
-    rows = (node[:, None, None] * p + a[None, :, None]).expand(N, p, p)
-    cols = (node[:, None, None] * p + a[None, None, :]).expand(N, p, p)
-    keep = rows >= cols
-    Hd = sys.Hd.detach().cpu().double()
-    ab.index_put_((rows[keep] - cols[keep], cols[keep]), Hd[keep], accumulate=True)
-    if sys.ei.numel():
-        ei, ej = sys.ei.cpu(), sys.ej.cpu()
-        hi = torch.maximum(ei, ej)
-        lo = torch.minimum(ei, ej)
-        blk = torch.where((ei >= ej)[:, None, None], sys.Hij.detach().cpu().double(),
-                          sys.Hij.detach().cpu().double().mT)  # H[hi, lo]
-        r_ = (hi[:, None, None] * p + a[None, :, None]).expand_as(blk)
-        c_ = (lo[:, None, None] * p + a[None, None, :]).expand_as(blk)
-        ab.index_put_(((r_ - c_).reshape(-1), c_.reshape(-1)), blk.reshape(-1), accumulate=True)
-    try:
-        x = solveh_banded(ab.numpy(), rhs.detach().cpu().double().reshape(n, -1).numpy(), lower=True,
-                          check_finite=False)
-    except (LinAlgError, ValueError):
-        return rhs, False
-    return torch.from_numpy(np.ascontiguousarray(x)).to(rhs).reshape(rhs.shape), True
+    def __init__(self, N, p, band, ei, ej, fi, fj, rd):
+        from scipy.linalg import get_lapack_funcs
+
+        self.N, self.p = N, p
+        self.u = u = band * p + p - 1
+        self.n = N * p
+        a = torch.arange(p)
+        node = torch.arange(N)
+        # storage: torch (n, u + 1) row-major == LAPACK's column-major (u + 1, n), ab[r - c, c] = H[r, c]
+        rows = (node[:, None, None] * p + a[None, :, None]).expand(N, p, p)
+        cols = (node[:, None, None] * p + a[None, None, :]).expand(N, p, p)
+        keep = (rows >= cols).reshape(-1)
+        tgt = [(cols * (u + 1) + rows - cols).reshape(-1)[keep]]
+        src = [torch.arange(N * p * p)[keep]]
+        if ei.numel():
+            ei, ej = ei.cpu(), ej.cpu()
+            hi, lo = torch.maximum(ei, ej), torch.minimum(ei, ej)
+            e = torch.arange(ei.shape[0])[:, None, None]
+            # entry (a, b) of H[hi, lo] = Hij[b, a] when ei <= ej (Hij = H[ei, ej]), else Hij[a, b]
+            sab = N * p * p + e * p * p + torch.where((ei >= ej)[:, None, None], a[None, :, None] * p + a[None, None, :],
+                                                      a[None, None, :] * p + a[None, :, None])
+            r_ = hi[:, None, None] * p + a[None, :, None]
+            c_ = lo[:, None, None] * p + a[None, None, :]
+            tgt.append((c_ * (u + 1) + r_ - c_).reshape(-1))
+            src.append(sab.reshape(-1))
+        self.tgt, self.src = torch.cat(tgt), torch.cat(src)
+        # right-hand sides column-major for LAPACK: a torch (1 + k, n) row-major buffer, reused;
+        # far edge f's Jacobian rows r (U's columns 1 + f·rd + r) sit at nodes fi[f] and fj[f]
+        F = fi.shape[0]
+        self.k = k = F * rd
+        self.buf = torch.zeros(1 + k, self.n, dtype=torch.float64)
+        # L⁻¹ of a column that is zero above node min(fi, fj) is zero there too: the far edges go
+        # to the columns in order of that first node, and each chunk of columns is solved only on
+        # the rows from its first nonzero one (the zeros are exact, the result is the same)
+        fi, fj = fi.cpu(), fj.cpu()
+        first = torch.minimum(fi, fj)
+        order = torch.argsort(first, stable=True)
+        rank = torch.empty_like(order)
+        rank[order] = torch.arange(F)
+        chunk = max(1, 16 // rd)
+        self.chunks = [(1 + c * rd, 1 + min(F, c + chunk) * rd, int(first[order[c]]) * p)
+                       for c in range(0, F, chunk)]
+        col = 1 + rank[None, None, :] * rd + torch.arange(rd)[:, None, None]  # (rd, 1, F)
+        self.pos_u = torch.cat([col * self.n + fi[None, None, :] * p + a[None, :, None],
+                                col * self.n + fj[None, None, :] * p + a[None, :, None]], 1).reshape(-1)
+        self.pbtrf, self.tbtrs = get_lapack_funcs(("pbtrf", "tbtrs"), dtype="float64")
+
+    def solve(self, sys: _System, rhs):
+        import numpy as np
+
+        N, p, n, u = self.N, self.p, self.n, self.u
+        vals = torch.cat([sys.Hd.detach().reshape(-1), sys.Hij.detach().reshape(-1)]).cpu().double()
+        ab = torch.zeros(n * (u + 1), dtype=torch.float64).index_add_(0, self.tgt, vals[self.src])
+        c, info = self.pbtrf(ab.reshape(n, u + 1).numpy().T, lower=1, overwrite_ab=1)
+        if info != 0:
+            return rhs, False
+        k = 0 if sys.U is None else self.k
+        Rt = self.buf[:1 + k]
+        if k:
+            Rt.zero_()
+            Rt.view(-1)[self.pos_u] = sys.U.detach().reshape(-1).cpu().double()
+        Rt[0] = rhs.detach().reshape(n)
+        _, info = self.tbtrs(c, Rt[:1].numpy().T, uplo="L", trans="N", overwrite_b=1)
+        for c0, c1, r0 in self.chunks if k else ():
+            y, info_u = self.tbtrs(c[:, r0:], Rt[c0:c1, r0:].numpy().T, uplo="L", trans="N")
+            Rt[c0:c1, r0:] = torch.from_numpy(y).T
+            info = info or info_u
+        if info != 0:
+            return rhs, False
+        W = Rt.T  # (n, k + 1), column-major
+        z = W[:, :1]
+        ok = True
+        if k:
+            WU = W[:, 1:]
+            # WUᵀWU by chunk rows of the lower triangle, each over its nonzero rows only
+            G = torch.zeros(k, k, dtype=torch.float64)
+            for c0, c1, r0 in self.chunks:
+                G[c0 - 1:c1 - 1, :c1 - 1] = Rt[c0:c1, r0:] @ Rt[1:c1, r0:].T
+            cap = torch.eye(k, dtype=torch.float64) + G.tril() + G.tril(-1).T
+            Lc, cinfo = torch.linalg.cholesky_ex(cap)
+            ok = bool(cinfo == 0)
+            z = z - WU @ torch.cholesky_solve(WU.T @ z, Lc)
+        x, info = self.tbtrs(c, np.asfortranarray(z.numpy()), uplo="L", trans="T", overwrite_b=1)
+        x = torch.from_numpy(np.ascontiguousarray(x)).to(rhs).reshape(N, p)
+        return x, ok and info == 0 and bool(torch.isfinite(x).all())
 
 
 def _solve_splu(sys: _System, rhs):
@@ -458,35 +577,25 @@ def _solve(sys: _System, rhs, method: str, band: int, cr=None):
         return x[..., 0], ok
     if method == "banded":
         return _solve_banded(sys, rhs, cr)
-    R = rhs[..., None] if sys.U is None else torch.cat([rhs[..., None], sys.U], -1)
-    Y, ok = _solve_lapack_banded_B(sys, R, band)
-    if sys.U is None:
-        return Y[..., 0], ok
-    N, p, k = sys.U.shape
-    Uf = sys.U.reshape(N * p, k)
-    Yf = Y.reshape(N * p, k + 1)
-    cap = torch.eye(k, dtype=rhs.dtype, device=rhs.device) + Uf.mT @ Yf[:, 1:]
-    Lc, info = torch.linalg.cholesky_ex(cap)
-    corr = Yf[:, 1:] @ torch.cholesky_solve(Uf.mT @ Yf[:, :1], Lc)
-    return (Yf[:, :1] - corr).reshape(N, p), ok and bool(info == 0)
+    return cr.solve(sys, rhs)
 
 
 def _choose(method: str, device, n_far: int, N: int, p: int, rd: int) -> str:
     if method != "auto":
         return method
-    if device.type != "cpu" or N * p <= 512:
-        return "dense"  # CUDA, or a system so small that op overhead dominates any structure
+    if device.type != "cpu":
+        return "dense"
     # the Woodbury part costs O(N p k²) for k long-edge residual rows: with 20 loop edges (k = 80,
-    # 120) banded and SuperLU tie at N = 1,000; with 100 loop edges at N = 5,000 SuperLU is ~7x
-    # faster (benchmarks/bench_pose_graph.py)
-    if n_far * rd <= 128:
-        return "banded"
+    # 120) at N = 1,000 LAPACK's band Cholesky + Woodbury is the fastest (~2x SuperLU, ~2x the
+    # torch cyclic reduction; at N = 128 ~4x dense); with 100 loop edges at N = 5,000 SuperLU is
+    # ~2x faster than it (benchmarks/bench_pose_graph.py). Without scipy: the torch banded solver.
     try:
         import scipy  # noqa: F401
-
-        return "splu"
     except ImportError:  # pragma: no cover
-        return "banded"
+        return "dense" if N * p <= 512 else "banded"  # tiny: op overhead dominates any structure
+    if N * p <= 128:
+        return "dense"
+    return "lapack_banded" if n_far * rd <= 128 else "splu"
 
 
 # --------------------------------------------------------------------------------------------
@@ -508,41 +617,52 @@ def _lm(prob, x, fixed, iters, *, solver="auto", band=4, function_tolerance=1e-6
     ni, nj = i[near], j[near]
     fi, fj = i[far], j[far]
     eye = torch.eye(p, dtype=dt, device=dev)
-    cr = _BandedCR(N, p, band, ni, nj, dt, dev) if method == "banded" else None
+    cr = (_BandedCR(N, p, band, ni, nj, dt, dev) if method == "banded"
+          else _LapackBanded(N, p, band, ni, nj, fi, fj, prob.rd) if method == "lapack_banded" else None)
+    if method == "banded" and fi.numel():
+        cr.set_far(fi, fj, prob.rd)
 
     def evaluate(xx):
-        r = prob.residual(xx)
-        return 0.5 * _huber((r * r).sum(-1), loop)[0].sum()
+        r = prob.residual_t(xx)
+        return 0.5 * _huber((r * r).sum(0), loop)[0].sum()
 
-    ij = torch.cat([i, j])
     near_idx = near.nonzero()[:, 0]
     far_idx = far.nonzero()[:, 0]
     # fixed nodes are Ceres constant blocks: their columns vanish from J
-    colmask = torch.cat([free[i, None].expand(-1, p), free[j, None].expand(-1, p)], -1)[:, None, :].to(dt)
+    colmask_t = torch.cat([free[None, i].expand(p, -1), free[None, j].expand(p, -1)]).to(dt)  # (2p, E)
+
+    rd = prob.rd
+    far_ij = torch.cat([fi, fj])
+    F = far_idx.numel()
 
     def linearize(xx):
-        r, Ji, Jj = prob.linearize(xx)
-        rho, rho1 = _huber((r * r).sum(-1), loop)
-        J = torch.cat([Ji, Jj], -1) * colmask  # (E, rd, 2p)
-        wJ = rho1[:, None, None] * J
-        He = J.mT @ wJ  # (E, 2p, 2p): [[Hii, Hij], [Hji, Hjj]] in one batched product
-        ge = (wJ.mT @ r[..., None])[..., 0]
-        g = x.new_zeros(N, p).index_add_(0, ij, torch.cat([ge[:, :p], ge[:, p:]]))
-        Hdiag = torch.cat([He[:, :p, :p], He[:, p:, p:]])
-        Hd_all = x.new_zeros(N, p, p).index_add_(0, ij, Hdiag)
-        Hij = He[:, :p, p:]
+        r, J = prob.linearize_t(xx)  # (rd, E), (rd, 2p, E)
+        rho, rho1 = _huber((r * r).sum(0), loop)
+        J = J.mul_(colmask_t)
+        wJ = J * rho1
+        # per-edge blocks of JᵀWJ as rd broadcast outer products with the edge index last
+        # (contiguous, vectorised; a batched bmm of E tiny products is ~5x slower on CPU)
+        Hii = J[0, :p, None] * wJ[0, None, :p]
+        Hij = J[0, :p, None] * wJ[0, None, p:]
+        Hjj = J[0, p:, None] * wJ[0, None, p:]
+        for k in range(1, rd):
+            Hii.addcmul_(J[k, :p, None], wJ[k, None, :p])
+            Hij.addcmul_(J[k, :p, None], wJ[k, None, p:])
+            Hjj.addcmul_(J[k, p:, None], wJ[k, None, p:])
+        ge = (wJ * r[:, None]).sum(0)  # (2p, E)
+        # accumulate per node with the node index last too (contiguous slices), then transpose once
+        g = x.new_zeros(p, N).index_add_(1, i, ge[:p]).index_add_(1, j, ge[p:]).T.contiguous()
+        HdT = x.new_zeros(p, p, N).index_add_(2, i, Hii).index_add_(2, j, Hjj)
+        Hd_all = HdT.permute(2, 0, 1).contiguous()
+        Hij = Hij.permute(2, 0, 1)  # (E, p, p) view
         U = None
         Hd_near = Hd_all
-        if far_idx.numel():
-            F = far_idx.numel()
-            Hd_near = Hd_all.index_add(0, torch.cat([fi, fj]), -torch.cat([He[far_idx, :p, :p], He[far_idx, p:, p:]]))
+        if F:
+            HdT.index_add_(2, far_ij, -torch.cat([Hii[..., far_idx], Hjj[..., far_idx]], -1))
+            Hd_near = HdT.permute(2, 0, 1).contiguous()
             Hij = Hij[near_idx]
-            Jf = J[far_idx] * rho1[far_idx].sqrt()[:, None, None]
-            U = x.new_zeros(N, p, F, prob.rd)
-            ar = torch.arange(F, device=dev)
-            U[fi, :, ar, :] = Jf[..., :p].mT
-            U[fj, :, ar, :] = Jf[..., p:].mT
-            U = U.reshape(N, p, F * prob.rd)
+            Jf = J[:, :, far_idx] * rho1[far_idx].sqrt()  # (rd, 2p, F)
+            U = Jf  # (far edges only with the banded solvers) scattered straight into their rhs buffers
         return dict(cost=0.5 * rho.sum(), g=g, Hd_near=Hd_near, Hd_all=Hd_all, Hij=Hij, U=U, J=J, rho1=rho1)
 
     lin = linearize(x)
@@ -566,8 +686,8 @@ def _lm(prob, x, fixed, iters, *, solver="auto", band=4, function_tolerance=1e-6
         delta, ok = _solve(sys, -lin["g"], method, band, cr)
         delta = delta * free[:, None]
         if ok:
-            Jd = (lin["J"] @ torch.cat([delta[i], delta[j]], -1)[..., None])[..., 0]
-            model = -((lin["g"] * delta).sum() + 0.5 * (lin["rho1"] * (Jd * Jd).sum(-1)).sum())
+            Jd = (lin["J"] * torch.cat([delta[i], delta[j]], -1).T).sum(1)  # (rd, E)
+            model = -((lin["g"] * delta).sum() + 0.5 * (lin["rho1"] * (Jd * Jd).sum(0)).sum())
             ok = bool(torch.isfinite(model)) and float(model) > 0
         if not ok:  # invalid step: shrink the trust region (Ceres StepIsInvalid)
             if adaptive:
