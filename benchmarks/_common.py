@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
+import time
 from pathlib import Path
 
 from torch_frontend.outputs import write_bytes_atomic
@@ -43,3 +45,29 @@ def apply_threads(threads: int) -> None:
 
         torch.set_num_threads(threads)
         cv2.setNumThreads(threads)
+
+
+def sync(device) -> None:
+    """Wait for queued CUDA work, so that a timing covers it (no-op on CPU)."""
+    if device.type == "cuda":
+        import torch
+
+        torch.cuda.synchronize()
+
+
+def time_pair(ft, fc, repeat: int, device):
+    """Alternating timings of the torch and the baseline (OpenCV) function, after one warm-up call
+    of each (which also fills the kernels' per-size caches): ``((median, min), (median, min))`` ms."""
+    ft()
+    fc()
+    sync(device)
+    tt, tc = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        ft()
+        sync(device)
+        tt.append((time.perf_counter() - t0) * 1e3)
+        t0 = time.perf_counter()
+        fc()
+        tc.append((time.perf_counter() - t0) * 1e3)
+    return (statistics.median(tt), min(tt)), (statistics.median(tc), min(tc))

@@ -16,9 +16,7 @@ Usage: ``python benchmarks/bench_image.py [--device cpu|cuda] [--repeat N] [--th
 from __future__ import annotations
 
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -33,7 +31,7 @@ from torch_frontend.corners import good_features_to_track, min_eigen_response  #
 from torch_frontend.masks import distance_mask  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, time_pair, write_json_atomic  # noqa: E402
 
 try:
     from torch_frontend.pyramid import build_pyramid  # noqa: E402
@@ -43,26 +41,8 @@ except ImportError:  # the pyramid module is owned elsewhere; skip when absent
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
-def _time_pair(ft, fc, repeat, device):
-    """Alternating timings of the torch and the OpenCV function: ((median, min), (median, min)) ms."""
-    ft()  # warm-up (also fills the kernels' per-size caches)
-    fc()
-    _sync(device)
-    tt, tc = [], []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        ft()
-        _sync(device)
-        tt.append((time.perf_counter() - t0) * 1e3)
-        t0 = time.perf_counter()
-        fc()
-        tc.append((time.perf_counter() - t0) * 1e3)
-    return (statistics.median(tt), min(tt)), (statistics.median(tc), min(tc))
 
 
 def _setmask_cv(pts, cnt, r, H, W):
@@ -116,7 +96,7 @@ def main(argv=None):
     for B in (1, 8):
         cases = _cases(B, raw, eq, tracked, cnts, cl, device)
         for name, ft, fc in cases:
-            (t_torch, t_torch_min), (t_cv, t_cv_min) = _time_pair(ft, fc, args.repeat, device)
+            (t_torch, t_torch_min), (t_cv, t_cv_min) = time_pair(ft, fc, args.repeat, device)
             rows.append({"op": name, "B": B, "torch_ms": round(t_torch, 3), "torch_min_ms": round(t_torch_min, 3),
                          "torch_ms_per_image": round(t_torch / B, 3), "opencv_ms": round(t_cv, 3),
                          "opencv_min_ms": round(t_cv_min, 3), "ratio": round(t_torch / t_cv, 2)})

@@ -41,29 +41,26 @@ from torch_frontend.lk import track_lk  # noqa: E402
 from torch_frontend.pyramid import build_pyramid  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, sync, write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
 def _time(fn, repeat, device, budget_s=20.0):
     """Median ms over ``repeat`` runs after one warm-up; fewer runs when a call is slow."""
     t0 = time.perf_counter()
     fn()  # warm-up (and compilation)
-    _sync(device)
+    sync(device)
     first = time.perf_counter() - t0
     n = max(1, min(repeat, int(budget_s / max(first, 1e-6))))
     ts = []
     for _ in range(n):
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        sync(device)
         ts.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(ts), n
 

@@ -18,9 +18,7 @@ Usage: ``python benchmarks/bench_loop_features.py [--device cpu|cuda] [--repeat 
 from __future__ import annotations
 
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -33,32 +31,14 @@ sys.path.insert(0, str(REPO))
 from torch_frontend.loop.features import brief, default_brief_pattern, fast, hamming  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, time_pair, write_json_atomic  # noqa: E402
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 N_QUERY = 150
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
-def _time_pair(ft, fc, repeat, device):
-    """Alternating timings of the torch and the baseline function: ((median, min), (median, min)) ms."""
-    ft()
-    fc()
-    _sync(device)
-    tt, tc = [], []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        ft()
-        _sync(device)
-        tt.append((time.perf_counter() - t0) * 1e3)
-        t0 = time.perf_counter()
-        fc()
-        tc.append((time.perf_counter() - t0) * 1e3)
-    return (statistics.median(tt), min(tt)), (statistics.median(tc), min(tc))
 
 
 def _np_brief(img, pts, pattern):
@@ -108,7 +88,7 @@ def main(argv=None):
     for B in (1, 16):
         cases, n_kp = _cases(B, raw, kps_cv, det, pattern, device)
         for name, ft, fc in cases:
-            (t_torch, t_torch_min), (t_cv, t_cv_min) = _time_pair(ft, fc, args.repeat, device)
+            (t_torch, t_torch_min), (t_cv, t_cv_min) = time_pair(ft, fc, args.repeat, device)
             rows.append({"op": name, "B": B, "keypoints_per_frame": round(n_kp, 1),
                          "torch_ms": round(t_torch, 3), "torch_min_ms": round(t_torch_min, 3),
                          "torch_ms_per_image": round(t_torch / B, 3), "baseline_ms": round(t_cv, 3),

@@ -16,9 +16,7 @@ Usage: ``python benchmarks/bench_loop_pnp.py [--device cpu|cuda] [--repeat N] [-
 from __future__ import annotations
 
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -31,7 +29,7 @@ sys.path.insert(0, str(REPO))
 from torch_frontend.loop.pnp import pnp_ransac  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import apply_threads, kernel_bench_parser, write_json_atomic  # noqa: E402
+from _common import apply_threads, kernel_bench_parser, time_pair, write_json_atomic  # noqa: E402
 
 THR = 10.0 / 460.0
 W2, H2 = 376.0 / 460.0, 240.0 / 460.0
@@ -62,26 +60,8 @@ def rot_err_deg(Ra, Rb):
     return np.degrees(2.0 * np.arcsin(np.clip(d / np.sqrt(8.0), 0.0, 1.0)))
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
-def _time_pair(ft, fc, repeat, device):
-    """Alternating timings: ((median, min), (median, min)) ms of the torch and the OpenCV function."""
-    ft()
-    fc()
-    _sync(device)
-    tt, tc = [], []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        ft()
-        _sync(device)
-        tt.append((time.perf_counter() - t0) * 1e3)
-        t0 = time.perf_counter()
-        fc()
-        tc.append((time.perf_counter() - t0) * 1e3)
-    return (statistics.median(tt), min(tt)), (statistics.median(tc), min(tc))
 
 
 def cv_loop(X, p):
@@ -114,7 +94,7 @@ def main(argv=None):
         def fc(X=X, p=p):
             return cv_loop(X, p)
 
-        (t_med, t_min), (c_med, c_min) = _time_pair(ft, fc, args.repeat, device)
+        (t_med, t_min), (c_med, c_min) = time_pair(ft, fc, args.repeat, device)
         res = ft()
         cvr = fc()
         cv_inl = np.zeros((B, X.shape[1]), bool)

@@ -39,7 +39,7 @@ from torch_frontend.loop import optimize as opt  # noqa: E402
 from torch_frontend.loop.geometry import R_to_quat, R_to_ypr, ypr_to_R  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, apply_threads, write_json_atomic  # noqa: E402
+from _common import RESULTS, apply_threads, sync, write_json_atomic  # noqa: E402
 
 
 def drifting_loop(N, n_loops, yaw_drift=0.02, rp_drift=0.0, seed=0):
@@ -78,9 +78,6 @@ def drifting_loop(N, n_loops, yaw_drift=0.02, rp_drift=0.0, seed=0):
     return four, six
 
 
-def _sync(device):
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
 def _peak_rss_subprocess(mode, N, solver, dtype):
@@ -114,10 +111,10 @@ def run_case(fn, args, solver, repeat, device, mem_key=None):
     fn(*args, iters=5, solver=solver)  # warm-up
     ts = []
     for _ in range(repeat):
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         out = fn(*args, iters=5, solver=solver, return_info=True)
-        _sync(device)
+        sync(device)
         ts.append((time.perf_counter() - t0) * 1e3)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats()

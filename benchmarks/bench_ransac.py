@@ -35,7 +35,7 @@ from torch_frontend import ransac as _ransac  # noqa: E402
 from torch_frontend.ransac import find_fundamental  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import write_json_atomic  # noqa: E402
+from _common import sync, write_json_atomic  # noqa: E402
 
 
 def make_problems(B: int, n: int = 150, rate: float = 0.25, noise: float = 0.3, seed: int = 0):
@@ -59,19 +59,16 @@ def make_problems(B: int, n: int = 150, rate: float = 0.25, noise: float = 0.3, 
     return np.stack(P1), np.stack(P2)
 
 
-def _sync(device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
 def timeit(fn, repeats: int, device) -> float:
     fn()  # warm-up (sample tables, allocator)
     ts = []
     for _ in range(repeats):
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        sync(device)
         ts.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(ts)
 
@@ -164,10 +161,10 @@ def tracker_rows(args, device) -> list:
             _ransac._RAW_CACHE.clear()
             ts = []
             for p1, p2, v in torch_calls:
-                _sync(device)
+                sync(device)
                 t0 = time.perf_counter()
                 res = find_fundamental(p1, p2, v, threshold=1.0, confidence=0.99, seed=0)
-                _sync(device)
+                sync(device)
                 ts.append((time.perf_counter() - t0) * 1e3)
                 iters.append(float(res.num_iters.double().mean()))
             means.append(statistics.mean(ts))

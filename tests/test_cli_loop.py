@@ -23,22 +23,9 @@ from torch_frontend.loop import run as loop_run
 from torch_frontend.loop.geometry import R_to_quat
 from torch_frontend.loop.report import LOOP_COLUMNS, OUTPUT_FILES, STREAM_FILES
 
+from .test_cli import assert_one_error_line, run_cli
+
 SMALL_DEMO = dict(keyframes_per_lap=56)
-
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def assert_one_error_line(err: str, *needles: str) -> None:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, f"expected one stderr line, got: {err!r}"
-    assert lines[0].startswith("torch-frontend: error: ")
-    assert "Traceback" not in err
-    for n in needles:
-        assert n in lines[0], f"{n!r} not in {lines[0]!r}"
 
 
 def _frame_of(seq, t: float) -> int:
@@ -80,6 +67,7 @@ def test_demo_loop_cli_end_to_end(demo_run, capsys):
     assert sum(s["rejected_by_reason"].values()) == s["loops_rejected"]
     assert s["ate_after"] <= 0.5 * s["ate_before"], (s["ate_before"], s["ate_after"])
     assert s["ate_before"] > 0.05  # the demo's drift is visible
+    assert s["skipped_bad_frames"] == 0
     for stage in ("tracking", "triangulation", "description", "vocabulary", "recognition_verification",
                   "optimisation", "outputs"):
         assert s["times"][stage] >= 0, stage

@@ -141,6 +141,14 @@ def test_detect_loop_vins_rule():
     assert ids.tolist() == [3, 2] and sc.tolist() == pytest.approx([0.75, 0.25])
     assert db.detect_loop(q, 55) == 2  # the OLDEST qualifying candidate, not the best
     assert db.size() == 56
+    # the same decision with the scores a score plot needs: candidate 2 (0.25), best 0.75
+    db2 = PlaceDatabase(Wn)
+    for i in range(55):
+        db2.add(row(seq, i))
+    cand, cand_score, best = db2.detect_loop_many(q, [55], [0], return_scores=True)
+    assert cand.tolist() == [2] and cand_score.tolist() == pytest.approx([0.25]) and best.tolist() == pytest.approx([0.75])
+    cand, cand_score, best = db2.detect_loop_many(row(seq, 56), [56], [0], return_scores=True)
+    assert cand.tolist() == [-1] and cand_score.tolist() == [0.0]
 
 
 def test_detect_loop_thresholds_and_gate():

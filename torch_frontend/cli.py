@@ -464,6 +464,26 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str | None) -> Non
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _add_input_options(p: argparse.ArgumentParser, title: str):
+    """``--euroc/--bag/--images`` (repeatable, in order) and the reader options of ``track``/``loop``."""
+    src = p.add_argument_group(title)
+    src.add_argument("--euroc", dest="sources", action=_SourceAction, const="euroc", metavar="DIR",
+                     help="EuRoC / TUM-VI ASL folder (mav0/cam0/data.csv + data/*.png)")
+    src.add_argument("--bag", dest="sources", action=_SourceAction, const="bag", metavar="PATH",
+                     help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
+    src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
+                     help="folder of images (timestamps from numeric names, or --fps)")
+    p.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+                   help="frame rate of --images folders (timestamps i/F)")
+    p.add_argument("--topic", default=None, metavar="T",
+                   help="image topic of --bag inputs (default: the config's image_topic)")
+    p.add_argument("--camera", default="cam0", metavar="CAM",
+                   help="camera folder of --euroc inputs (default: cam0)")
+    p.add_argument("--skip-bad-frames", action="store_true",
+                   help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
+    return src
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torch-frontend",
@@ -484,21 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
     track.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                        help="VINS config YAML (VINS-Mono or VINS-Fusion); optional with --euroc, whose "
                             "sensor.yaml then gives the camera")
-    src = track.add_argument_group("inputs (repeatable, at least one)")
-    src.add_argument("--euroc", dest="sources", action=_SourceAction, const="euroc", metavar="DIR",
-                     help="EuRoC / TUM-VI ASL folder (mav0/cam0/data.csv + data/*.png)")
-    src.add_argument("--bag", dest="sources", action=_SourceAction, const="bag", metavar="PATH",
-                     help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
-    src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
-                     help="folder of images (timestamps from numeric names, or --fps)")
-    track.add_argument("--fps", type=_positive_float, default=None, metavar="F",
-                       help="frame rate of --images folders (timestamps i/F)")
-    track.add_argument("--topic", default=None, metavar="T",
-                       help="image topic of --bag inputs (default: the config's image_topic)")
-    track.add_argument("--camera", default="cam0", metavar="CAM",
-                       help="camera folder of --euroc inputs (default: cam0)")
-    track.add_argument("--skip-bad-frames", action="store_true",
-                       help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
+    _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
     track.set_defaults(func=_cmd_track)
 
@@ -537,13 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                       help="VINS config YAML (camera and camera-to-body extrinsic); optional with --euroc, "
                            "whose sensor.yaml then gives both")
-    lsrc = loop.add_argument_group("inputs (repeatable, at least one; one --poses per input)")
-    lsrc.add_argument("--euroc", dest="sources", action=_SourceAction, const="euroc", metavar="DIR",
-                      help="EuRoC / TUM-VI ASL folder")
-    lsrc.add_argument("--bag", dest="sources", action=_SourceAction, const="bag", metavar="FILE",
-                      help="ROS 1 .bag file or ROS 2 bag folder")
-    lsrc.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
-                      help="folder of images (timestamps from numeric names, or --fps)")
+    lsrc = _add_input_options(loop, "inputs (repeatable, at least one; one --poses per input)")
     lsrc.add_argument("--poses", action="append", metavar="FILE",
                       help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, or EuRoC "
                            "ground truth (format detected)")
@@ -577,14 +577,6 @@ def build_parser() -> argparse.ArgumentParser:
                       help="loop verification PnP-RANSAC backend (default: torch)")
     loop.add_argument("--tracker-mode", choices=("mono", "fusion"), default="mono",
                       help="front end rules: VINS-Mono or VINS-Fusion tracker (default: mono)")
-    loop.add_argument("--fps", type=_positive_float, default=None, metavar="F",
-                      help="frame rate of --images folders (timestamps i/F)")
-    loop.add_argument("--topic", default=None, metavar="T",
-                      help="image topic of --bag inputs (default: the config's image_topic)")
-    loop.add_argument("--camera", default="cam0", metavar="CAM",
-                      help="camera folder of --euroc inputs (default: cam0)")
-    loop.add_argument("--skip-bad-frames", action="store_true",
-                      help="skip unreadable/corrupt frames instead of stopping")
     loop.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
                       help="stop after N frames per stream")
     loop.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")

@@ -238,14 +238,18 @@ class PlaceDatabase:
 
     # -- loop detection ---------------------------------------------------------------------------
     def detect_loop_many(self, bows: BowVector, index: IntLike, streams: Optional[IntLike] = None,
-                         min_gap: int = 50, score_first: float = 0.05, score_other: float = 0.015) -> torch.Tensor:
+                         min_gap: int = 50, score_first: float = 0.05, score_other: float = 0.015,
+                         return_scores: bool = False):
         """VINS ``detectLoop`` for B keyframes of B DIFFERENT streams: query, then add each.
 
         Args:
             bows: (B, K) bags; index: (B,) or int keyframe index (VINS: = the new entry's id);
             streams: (B,) distinct stream ids (default 0..B-1).
+            return_scores: also return the candidate's score and the best score of the query.
         Returns:
-            (B,) int64 loop candidate (oldest qualifying entry) or −1.
+            (B,) int64 loop candidate (oldest qualifying entry) or −1; with ``return_scores`` also
+            ``(B,)`` the candidate's score (0 without one) and ``(B,)`` the best score (0 when the
+            query had no result), e.g. for a per-keyframe score plot.
         """
         words, weights = self._check_bow(bows)
         B = words.shape[0]
@@ -260,8 +264,14 @@ class PlaceDatabase:
         find = have[:, 0] & (sc[:, 0] > score_first) & other.any(1) & (idx > min_gap)
         big = torch.iinfo(torch.int64).max
         cand = torch.where(other, ids[:, 1:], torch.full_like(ids[:, 1:], big)).amin(1)
-        best = torch.minimum(ids[:, 0], cand)
-        return torch.where(find, best, torch.full_like(best, -1))
+        oldest = torch.minimum(ids[:, 0], cand)
+        out = torch.where(find, oldest, torch.full_like(oldest, -1))
+        if not return_scores:
+            return out
+        hit = (ids == out[:, None]) & find[:, None]
+        cand_score = torch.where(hit, sc, torch.zeros_like(sc)).amax(1)
+        best_score = torch.where(have[:, 0], sc[:, 0], torch.zeros_like(sc[:, 0]))
+        return out, cand_score, best_score
 
     def detect_loop(self, bow: BowVector, index: int, stream: int = 0) -> int:
         """VINS ``detectLoop(kf, index)`` for one keyframe: candidate entry id or −1."""

@@ -29,6 +29,8 @@ Differences from VINS, on purpose:
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
@@ -92,14 +94,12 @@ class LoopResult:
 
 def _pad(rows: Sequence[torch.Tensor], width: int, fill=0):
     """Stack ragged ``(n_b, ...)`` tensors into ``(B, width, ...)`` plus a ``(B, width)`` mask."""
-    B = len(rows)
-    ref = rows[0]
-    out = torch.full((B, width, *ref.shape[1:]), fill, dtype=ref.dtype, device=ref.device)
-    valid = torch.zeros(B, width, dtype=torch.bool, device=ref.device)
-    for b, r in enumerate(rows):  # B candidates, not points
-        out[b, : r.shape[0]] = r
-        valid[b, : r.shape[0]] = True
-    return out, valid
+    n = torch.tensor([r.shape[0] for r in rows])
+    out = torch.nn.utils.rnn.pad_sequence(list(rows), batch_first=True, padding_value=fill)
+    if out.shape[1] < width:
+        out = torch.cat([out, out.new_full((out.shape[0], width - out.shape[1], *out.shape[2:]), fill)], 1)
+    valid = torch.arange(width)[None, :] < n[:, None]
+    return out, valid.to(out.device)
 
 
 def verify_loops(
@@ -321,24 +321,11 @@ class PoseGraph:
         valid = torch.ones(1, max(K, 1), dtype=torch.bool) if K else torch.zeros(1, 1, dtype=torch.bool)
         return self.vocabulary.transform(desc, valid)
 
-    def _detect(self, kf: KeyFrame) -> Tuple[int, float]:
-        """VINS ``detectLoop`` (§7.5) keeping the best score for the score plot."""
-        bow = self._bow(kf)
-        idx = kf.index
-        ids, sc = self.db.query_many(bow, 4, idx - self.min_loop_gap)
-        self.db.add(bow)
-        ids, sc = ids[0], sc[0]
-        have = ids >= 0
-        best = float(sc[0]) if bool(have[0]) else 0.0
-        other = have[1:] & (sc[1:] > 0.015)
-        if not (bool(have[0]) and best > 0.05 and bool(other.any()) and idx > self.min_loop_gap):
-            return -1, best
-        cand = int(ids[0])
-        for k in range(1, ids.shape[0]):
-            if bool(other[k - 1]) and int(ids[k]) < cand:
-                cand = int(ids[k])
-        score = float(sc[(ids == cand).nonzero()[0, 0]])
-        return cand, score
+    def _detect(self, kf: KeyFrame) -> Tuple[int, float, float]:
+        """VINS ``detectLoop`` (§7.5): ``(candidate or -1, its score, best score)``."""
+        cand, score, best = self.db.detect_loop_many(self._bow(kf), [kf.index], [0], min_gap=self.min_loop_gap,
+                                                     return_scores=True)
+        return int(cand[0]), float(score[0]), float(best[0])
 
     def add_keyframe(self, kf: KeyFrame, detect_loop: bool = True) -> Optional[LoopResult]:
         """VINS ``addKeyFrame`` (§7.7): place it in its sequence's world, detect and verify a loop,
@@ -357,13 +344,13 @@ class PoseGraph:
         self.global_index += 1
 
         result = None
-        loop_index, score = -1, 0.0
+        loop_index, score, best = -1, 0.0, 0.0
         if self.db is not None:
             if detect_loop:
-                loop_index, score = self._detect(kf)
+                loop_index, score, best = self._detect(kf)
             else:
                 self.db.add(self._bow(kf))
-        self.scores.append(score)
+        self.scores.append(best)
         if loop_index != -1:
             old = self.keyframes[loop_index]
             result = verify_loops([kf], [old], self.R_ic, self.t_ic, self.pnp_backend, self.generator, [score])[0]
@@ -546,12 +533,7 @@ class PoseGraph:
         final = Path(directory)
         if not final.parent.exists():
             raise DataError(f"save: parent folder {final.parent} does not exist")
-        tmp = final.parent / f".{final.name}.tmp-{id(self)}"
-        if tmp.exists():
-            import shutil
-
-            shutil.rmtree(tmp)
-        tmp.mkdir()
+        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
         try:
             lines = []
             for k in self.keyframes:
@@ -573,8 +555,6 @@ class PoseGraph:
             (tmp / "pose_graph.txt").write_text("".join(lines))
             replace_dir(tmp, final)
         except BaseException:
-            import shutil
-
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return final

@@ -239,17 +239,11 @@ def _as_trajectory(x, what: str):
     return traj
 
 
-def _covered(traj, times: np.ndarray, max_gap: float) -> np.ndarray:
-    """``(M,)`` bool: the times a pose bracket (or equal pose time) covers (``interpolate``'s rule)."""
-    pt = traj.time.numpy()
-    t = np.asarray(times, dtype=np.float64)
-    if pt.size == 1:
-        return t == pt[0]
-    i0 = np.clip(np.searchsorted(pt, t, side="right") - 1, 0, pt.size - 2)
-    t0, t1 = pt[i0], pt[i0 + 1]
-    exact = (t == t0) | (t == t1)
-    inside = (t >= pt[0]) & (t <= pt[-1])
-    return np.isfinite(t) & inside & (exact | (t1 - t0 <= max_gap))
+def _covered(traj, times, max_gap: float) -> np.ndarray:
+    """``(M,)`` bool numpy: the times ``interpolate`` accepts (``io.trajectory.covered``)."""
+    from ..io.trajectory import covered
+
+    return covered(traj, np.asarray(times, dtype=np.float64), max_gap).numpy()
 
 
 def _listed_times(seq) -> Optional[np.ndarray]:
@@ -796,6 +790,7 @@ def run_loop(
             summary["ate_joint_after"] = _joint_ate(joint_a)
     summary.update({
         "optimisations": sum(g.num_optimizations for g in graphs),
+        "skipped_bad_frames": len(stream.skipped),
         "seconds": round(total, 6),
         "times": times,
         "keyframes_per_second": total_kf / t_graph if t_graph > 0 else 0.0,
