@@ -11,6 +11,9 @@ Usage:
     python benchmarks/bench_pipeline.py              # the standard table (B 1, 4, 16, 64; threads 1, 2)
     python benchmarks/bench_pipeline.py --quick      # B 1 and 4, threads 1 (a smoke run)
     python benchmarks/bench_pipeline.py --compile    # also torch.compile rows (B 1 and 16, 1 thread)
+    python benchmarks/bench_pipeline.py --profile 16 # where the time goes at B = 16, 1 thread:
+                                                     # results/pipeline_profile.md (torch.profiler
+                                                     # ops and cProfile functions)
 
 Writes ``benchmarks/results/pipeline.json`` and ``benchmarks/results/pipeline.md`` (temp + rename),
 and a scaling plot ``benchmarks/results/pipeline_scaling.png``.
@@ -125,6 +128,65 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     return res
 
 
+def profile(B: int, n_meas: int = 6) -> str:
+    """Markdown: the tracker at ``B`` streams, 1 thread, CPU — the top aten ops by self time
+    (``torch.profiler``) and the top torch_frontend functions by own time (``cProfile``), each as a
+    share of the measured steps."""
+    import cProfile
+    import pstats
+
+    import numpy as np
+    import torch
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as tprofile
+
+    import torch_frontend as tf
+
+    torch.set_num_threads(1)
+    cfg = tf.load_config(REPO / "configs" / "euroc.yaml")
+    steps = _stream_frames(_frames(), B, 4 + 2 * n_meas)
+    stamps = [1403715273.0 + 0.05 * k for k in range(len(steps))]
+    batches = [torch.from_numpy(np.stack(row))[:, None] for row in steps]
+    tr = tf.FeatureTracker(cfg, num_streams=B)
+    for k in range(4):
+        tr.track(batches[k], [stamps[k]] * B)
+    with tprofile(activities=[ProfilerActivity.CPU]) as prof:
+        t0 = time.perf_counter()
+        for k in range(4, 4 + n_meas):
+            tr.track(batches[k], [stamps[k]] * B)
+        wall = time.perf_counter() - t0
+    ev = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
+    total = sum(e.self_cpu_time_total for e in ev) or 1.0
+    lines = [f"Profile: B = {B}, 1 thread, {n_meas} steps, {wall / (n_meas * B) * 1e3:.1f} ms/stream-frame "
+             f"under torch.profiler. Machine: {machine_description()}", "",
+             "| aten op | self CPU share | calls per step | mean µs per call |", "|---|---|---|---|"]
+    for e in ev[:15]:
+        lines.append(f"| {e.key} | {e.self_cpu_time_total / total:.1%} | {e.count / n_meas:.0f} | "
+                     f"{e.self_cpu_time_total / max(e.count, 1):.1f} |")
+    pr = cProfile.Profile()
+    pr.enable()
+    for k in range(4 + n_meas, 4 + 2 * n_meas):
+        tr.track(batches[k], [stamps[k]] * B)
+    pr.disable()
+    st = pstats.Stats(pr)
+    # own time of each torch_frontend function, plus the builtins (torch ops) it calls directly:
+    # where the kernels' time lands in our code
+    own: dict = {}
+    for key, (cc, nc, tt, ct, callers) in st.stats.items():
+        if "torch_frontend" in key[0]:
+            own[key] = own.get(key, 0.0) + tt
+        elif key[0] == "~":
+            for caller, (_, _, _, cct) in callers.items():
+                if "torch_frontend" in caller[0]:
+                    own[caller] = own.get(caller, 0.0) + cct
+    tot = st.total_tt or 1.0
+    lines += ["", "| torch_frontend function (cProfile) | own time share, with the torch ops it calls |"
+              " calls per step |", "|---|---|---|"]
+    for key, t in sorted(own.items(), key=lambda kv: kv[1], reverse=True)[:15]:
+        lines.append(f"| {Path(key[0]).name}:{key[1]} {key[2]} | {t / tot:.1%} | {st.stats[key][1] / n_meas:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
 def _target(row) -> str:
     if "ratio" not in row:
         return ""
@@ -221,8 +283,19 @@ def main(argv=None) -> int:
     ap.add_argument("--batches", type=int, nargs="*", default=None)
     ap.add_argument("--threads", type=int, nargs="*", default=None)
     ap.add_argument("--device", nargs="*", default=None)
+    ap.add_argument("--profile", type=int, default=None, metavar="B",
+                    help="profile the tracker at B streams (1 thread) instead of the table")
     ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)  # internal: run one config
     args = ap.parse_args(argv)
+    if args.profile is not None:
+        md = profile(args.profile)
+        print(md)
+        sys.path.insert(0, str(HERE))
+        from _common import write_atomic
+
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        write_atomic(RESULTS / "pipeline_profile.md", md.encode())
+        return 0
 
     if args.one:
         spec = json.loads(args.one)

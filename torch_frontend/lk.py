@@ -146,26 +146,20 @@ def _interp(P: torch.Tensor, w: torch.Tensor, init: torch.Tensor | None = None) 
 
 
 @functools.lru_cache(maxsize=128)
-def _level_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, idx_dtype: torch.dtype, device):
+def _level_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
     """Per level-size constants (cached: they depend on sizes only).
 
-    Window rows/columns are addressed in *padded* coordinates ``r = y + wh``, ``c = x + ww``
-    (``y in [-wh, H + wh)``): ``rowtab[r]`` = ``reflect101(y) * W``, ``coltab[c]`` = ``reflect101(x)``
-    — the BORDER_REFLECT_101 padding of ``buildOpticalFlowPyramid`` as index look-up tables, so no
-    padded copy of any image is made; ``rowin``/``colin`` are 1 inside the image and 0 outside
-    (the derivative windows see zeros there: ``calc()`` pads ``derivI`` with BORDER_CONSTANT).
+    Window rows/columns are addressed by ``r = y + wh``, ``c = x + ww`` (``y in [-wh, H + wh)``):
+    ``rowin[r]``/``colin[c]`` are 1 inside the image and 0 outside (the derivative windows see
+    zeros there: ``calc()`` pads ``derivI`` with BORDER_CONSTANT).
     ``spanm1 = (W + ww - 1, H + wh - 1)``: the largest allowed window origin + ``win``.
     """
-    ry = _reflect101_index(H, wh, wh, device)
-    rx = _reflect101_index(W, ww, ww, device)
-    rowtab = (ry * W).to(idx_dtype)
-    coltab = rx.to(idx_dtype)
     yy = torch.arange(-wh, H + wh, device=device)
     xx = torch.arange(-ww, W + ww, device=device)
     rowin = ((yy >= 0) & (yy < H)).to(dtype)
     colin = ((xx >= 0) & (xx < W)).to(dtype)
     spanm1 = torch.tensor([[W + ww - 1], [H + wh - 1]], dtype=dtype, device=device)
-    return rowtab, coltab, rowin, colin, spanm1
+    return rowin, colin, spanm1
 
 
 @functools.lru_cache(maxsize=32)
@@ -192,36 +186,39 @@ def _win_consts(ww: int, wh: int, dtype: torch.dtype, device):
 
 
 class _Level:
-    """Flattened images of one pyramid level (all streams) and the window geometry.
+    """Padded images of one pyramid level (all streams) and the window geometry.
 
-    Windows are gathered straight from the unpadded images through reflect-101 index tables (one
-    ``index_select`` per window set, no padded copies). Layout: points *last* — a window set is
-    ``(rows, cols, m)`` — so every per-point weight broadcasts along the contiguous axis (several
-    times faster on CPU than a per-row broadcast) and the shifted bilinear taps are plain slices.
+    Both images are padded by ``win + 1`` with BORDER_REFLECT_101 (:meth:`Pyramid.padded`: built
+    once per frame when the pyramid is the next image, reused when it is the previous one) and seen
+    through overlapping window views, so that every window set is one ``index_select`` of whole
+    patches by top-left flat index. Window origins are addressed as ``u = origin + win`` (in
+    ``[0, size + win)``); ``u`` is flat index ``u_y Wp + u_x`` of the padded image's patch that starts
+    one pixel above and left of the window — the ``(win + 3)^2`` patch the template needs for its
+    Scharr derivatives — and ``Wp + 1`` further on for the ``(win + 1)^2`` patch an iteration reads.
     """
 
-    def __init__(self, I, grads, J, win, dtype):
+    def __init__(self, Ip, Jp, H, W, win, dtype):
         ww, wh = win
-        B, _, H, W = J.shape
-        self.H, self.W, self.B, self.HW = H, W, B, H * W
+        B = Jp.shape[0]
+        self.H, self.W, self.B = H, W, B
         self.ww, self.wh, self.ph, self.pw = ww, wh, wh + 1, ww + 1
-        idx_dtype = torch.int32 if 2 * B * H * W < 2**31 else torch.int64
-        self.idx_dtype = idx_dtype
-        (self.rowtab, self.coltab, self.rowin, self.colin,
-         self.spanm1) = _level_tables(H, W, ww, wh, dtype, idx_dtype, J.device)
-        self.J = J.reshape(-1)
-        # next image: padded once (BORDER_REFLECT_101, as buildOpticalFlowPyramid) so that every
-        # iteration gathers whole window rows through an overlapping view (no per-element index)
-        Hp, Wp = H + 2 * wh, W + 2 * ww
+        Hp, Wp = H + 2 * wh + 2, W + 2 * ww + 2
         self.Wp, self.HWp = Wp, Hp * Wp
-        self.Jp = Jp = pad_reflect101(J, wh, ww).reshape(-1)
-        self.Jview = Jp.as_strided((Jp.numel() - wh * Wp - ww, wh + 1, ww + 1), (1, Wp, 1))
-        self.jstr = torch.tensor([[1], [Wp]], device=J.device)  # int64: exact for any image size
-        dy, dx = torch.arange(wh + 1, device=J.device), torch.arange(ww + 1, device=J.device)
-        self.offs = (dy[:, None] * Wp + dx[None, :]).unsqueeze(-1)
-        self.I = I.reshape(-1)
-        self.G = grads.reshape(-1)  # (B, 2, H, W) flat: channel c of stream b at (2b + c) * HW
-        self.choff = torch.tensor([0, H * W], dtype=idx_dtype, device=J.device).view(2, 1, 1, 1)
+        self.rowin, self.colin, self.spanm1 = _level_tables(H, W, ww, wh, dtype, Jp.device)
+        dev = Jp.device
+        # next image: (ph, pw) patches starting at padded (u_y + 1, u_x + 1)
+        self.Jp = Jp = Jp.reshape(-1)
+        o = Wp + 1
+        self.Jview = Jp.as_strided((Jp.numel() - o - wh * Wp - ww, wh + 1, ww + 1), (1, Wp, 1),
+                                   Jp.storage_offset() + o)
+        self.jstr = torch.tensor([[1], [Wp]], device=dev)  # int64: exact for any image size
+        dy, dx = torch.arange(wh + 1, device=dev), torch.arange(ww + 1, device=dev)
+        self.offs = (dy[:, None] * Wp + dx[None, :] + o).unsqueeze(-1)
+        # previous image: (ph + 2, pw + 2) patches starting at padded (u_y, u_x)
+        self.Ip = Ip = Ip.reshape(-1)
+        self.Iview = Ip.as_strided((Ip.numel() - (wh + 2) * Wp - (ww + 2), wh + 3, ww + 3), (1, Wp, 1))
+        dy, dx = torch.arange(wh + 3, device=dev), torch.arange(ww + 3, device=dev)
+        self.ioffs = (dy[:, None] * Wp + dx[None, :]).unsqueeze(-1)
 
 
 def _gather(view: torch.Tensor, flat: torch.Tensor, base: torch.Tensor, offs: torch.Tensor) -> torch.Tensor:
@@ -310,42 +307,68 @@ def compile_step(enable: bool = True, **compile_kwargs) -> None:
         _STEP[0] = _lk_step
 
 
+def _scharr_patch(P: torch.Tensor, out: torch.Tensor | None = None) -> torch.Tensor:
+    """Scharr ``(Ix, Iy)`` ``(2, h - 2, w - 2, m)`` of patches ``P`` ``(h, w, m)`` (points last), as
+    ``calcSharrDeriv``: ``[3 10 3]`` smoothing across, ``[-1 0 1]`` difference along. Integer taps:
+    exact on integer grey levels (float32 or int32) whatever the order of the additions."""
+    up, mid, down = P[:-2], P[1:-1], P[2:]
+    if P.requires_grad:
+        s = (up + down) * 3 + mid * 10
+        d = down - up
+        return torch.stack((s[:, 2:] - s[:, :-2], (d[:, :-2] + d[:, 2:]) * 3 + d[:, 1:-1] * 10))
+    if out is None:
+        out = P.new_empty((2, P.shape[0] - 2, P.shape[1] - 2) + P.shape[2:])
+    s = torch.add(up, down).mul_(3).add_(mid, alpha=10)
+    torch.sub(s[:, 2:], s[:, :-2], out=out[0])
+    d = torch.sub(down, up, out=s)  # reuse the buffer
+    torch.add(d[:, :-2], d[:, 2:], out=out[1])
+    out[1].mul_(3).add_(d[:, 1:-1], alpha=10)
+    return out
+
+
 def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Tensor | None, fixed: bool,
               dtype, k: dict, sync: bool = True):
-    """Windows of the previous image for ``m`` lanes with padded origins ``ucl`` (``(2, m)``),
-    fractional offsets ``frac`` and stream indices ``lanes``: grey levels x32 ``(wh, ww, m)`` and
-    Scharr derivatives ``(2, wh, ww, m)``, as OpenCV computes them."""
-    ry = ucl[1] + k["ar_ph"]  # (ph, m) padded rows
-    rx = ucl[0] + k["ar_pw"]
-    rr = lv.rowtab.take(ry)
-    cc = lv.coltab.take(rx)
-    if lanes is None:
-        idx = rr.unsqueeze(1) + cc
-        gidx = idx + lv.choff
-    else:
-        lo = lanes.to(lv.idx_dtype) * lv.HW
-        idx = (rr + lo).unsqueeze(1) + cc
-        gidx = (rr + lo * 2).unsqueeze(1) + cc + lv.choff
-    PI = lv.I.index_select(0, idx.view(-1)).view(idx.shape)
-    PG = lv.G.index_select(0, gidx.view(-1)).view(gidx.shape)
+    """Windows of the previous image for ``m`` lanes with window origins ``ucl`` (``(2, m)`` long, as
+    ``u = origin + win``), fractional offsets ``frac`` and stream indices ``lanes``: grey levels x32
+    ``(wh, ww, m)`` and Scharr derivatives ``(2, wh, ww, m)``, as OpenCV computes them.
+
+    One ``(win + 3)^2`` patch per lane from the padded level gives both: its centre is the grey-level
+    window, its Scharr derivatives (on the reflect-101 padding, so BORDER_REFLECT_101 at the image
+    edge, as ``calcSharrDeriv``) the derivative window — no full-image derivatives are needed (for a
+    few hundred points the patches are ~5x fewer pixels than the image at level 0)."""
+    base = ucl[1] * lv.Wp + ucl[0]
+    if lanes is not None:
+        base = base + lanes * lv.HWp
+    P = _gather(lv.Iview, lv.Ip, base, lv.ioffs)  # (ph + 2, pw + 2, m)
+    PI = P[1:-1, 1:-1]
+    need_soft = not fixed or P.requires_grad or frac.requires_grad
     # derivatives: zero where the window hangs over the image edge (BORDER_CONSTANT); with ``sync``
     # one host sync skips the mask pass in the usual case of no window at the edge
+    edge = None
     if not sync or bool(((ucl < k["win"].long()) | (ucl >= lv.spanm1.long() - k["win"].long())).any()):
-        PG = PG * (lv.rowin.take(ry).unsqueeze(1) * lv.colin.take(rx))
-    need_soft = not fixed or PI.requires_grad or PG.requires_grad or frac.requires_grad
+        edge = lv.rowin.take(ucl[1] + k["ar_ph"]).unsqueeze(1) * lv.colin.take(ucl[0] + k["ar_pw"])
     if need_soft:
+        PG = _scharr_patch(P)
+        if edge is not None:
+            PG = PG * edge
         w = _soft_weights(frac)
         iv, g = _interp(PI, w * 32.0), _interp(PG, w)
     if fixed:
         iw = _fixed_weights(frac, k)
         # grey levels: sum(I * iw) / 2^9 is exact in float32 (22 bits); OpenCV rounds half up.
-        # derivatives: sum(dI * iw) needs up to 26 bits: float64, exact, so the descaled integer is
-        # OpenCV's CV_DESCALE(., 14) exactly.
+        # derivatives: sum(dI * iw) needs up to 26 bits: int32 (exact, cheaper than float64) or
+        # float64 — the descaled integer is OpenCV's CV_DESCALE(., 14) exactly.
         hiv = _interp(PI.detach(), (iw * 2.0**-9).to(dtype), k["c05"]).floor_()
         if dtype == torch.float64:
-            hg = _interp(PG.detach(), iw.double() * 2.0**-14, k["c05"]).floor_()
-        else:  # int32 (exact, cheaper than float64): CV_DESCALE(s, 14) = (s + 2^13) >> 14
-            hg = _interp(PG.detach().int(), iw.int(), k["i8192"]).bitwise_right_shift_(_W_BITS).to(dtype)
+            PGd = PG.detach() if need_soft else _scharr_patch(P.detach())
+            if edge is not None and not need_soft:
+                PGd = PGd * edge
+            hg = _interp(PGd, iw.double() * 2.0**-14, k["c05"]).floor_()
+        else:  # CV_DESCALE(s, 14) = (s + 2^13) >> 14
+            PGi = PG.detach().int() if need_soft else _scharr_patch(P.detach().int())
+            if edge is not None and not need_soft:
+                PGi = PGi * edge.int()
+            hg = _interp(PGi, iw.int(), k["i8192"]).bitwise_right_shift_(_W_BITS).to(dtype)
         if need_soft:
             iv, g = _ste(iv, hiv), _ste(g, hg)
         else:
@@ -384,7 +407,8 @@ def _lk_impl(
     for level in range(top, -1, -1):
         if level != top:
             out = out * 2.0
-        lv = _Level(prev.levels[level].to(dtype), prev.grads[level].to(dtype), nxt.levels[level].to(dtype),
+        H, W = nxt.levels[level].shape[-2:]
+        lv = _Level(prev.padded(level, wh + 1, ww + 1, dtype), nxt.padded(level, wh + 1, ww + 1, dtype), H, W,
                     win, dtype)
 
         # ---- lanes processed at this level: window origin inside [-win, size)
@@ -493,11 +517,11 @@ def _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half):
     return out, status
 
 
-def _as_pyramid(x: ImageOrPyramid, name: str, levels: int, need_grads: bool) -> Pyramid:
+def _as_pyramid(x: ImageOrPyramid, name: str, levels: int) -> Pyramid:
     if isinstance(x, Pyramid):
-        return x.with_gradients() if need_grads else x
+        return x
     img = as_image_batch(x, name)
-    return build_pyramid(img, levels, with_gradients=need_grads)
+    return build_pyramid(img, levels, with_gradients=False)
 
 
 def _effective_top(prev: Pyramid, nxt: Pyramid, max_level: int, win: Tuple[int, int]) -> int:
@@ -615,6 +639,12 @@ def track_lk(
     per = max(1, min(_MAX_STREAMS, _MAX_LANES // max(N, 1)))
     if B <= per:
         return _track(prev, next, pts, valid, init_pts, *opts)
+    # pyramids and their padded levels for all streams at once: the groups share them as views, and
+    # a pyramid given as ``next`` keeps its padded levels for the call in which it is ``prev``
+    prev, next = _as_pyramid(prev, "prev", levels), _as_pyramid(next, "next", levels)
+    for l in range(_effective_top(prev, next, levels, win) + 1):
+        for x in (prev, next):
+            x.padded(l, win[1] + 1, win[0] + 1, pts.dtype)
     outs, sts = [], []
     for s0 in range(0, B, per):
         sl = slice(s0, min(B, s0 + per))
@@ -635,8 +665,8 @@ _MAX_STREAMS = 8
 
 def _track(prev, nxt, pts, valid, init_pts, max_level, fb_level, win, max_iters, eps2, min_eig, fixed,
            early_exit, forward_backward, fb_use_initial_flow, fb_threshold, levels):
-    P = _as_pyramid(prev, "prev", levels, need_grads=True)
-    Q = _as_pyramid(nxt, "next", levels, need_grads=forward_backward)
+    P = _as_pyramid(prev, "prev", levels)
+    Q = _as_pyramid(nxt, "next", levels)
     top = _effective_top(P, Q, max_level, win)
     fb_top = _effective_top(Q, P, fb_level, win) if forward_backward else 0
     out, status = _lk_impl(P, Q, pts, valid, init_pts, win, top, max_iters, eps2, min_eig, fixed, early_exit)

@@ -18,8 +18,8 @@ OpenCV facts reproduced here (spec §5.1):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import List, Tuple
+from dataclasses import dataclass, field
+from typing import Dict, List, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -154,6 +154,9 @@ class Pyramid:
     levels: List[torch.Tensor]
     grads: List[torch.Tensor] | None = None
     rounded: bool = False
+    # padded copies of the levels, keyed by (level, pad_h, pad_w, dtype): built once when the
+    # pyramid is the *next* image of an LK call and reused when it is the *previous* one
+    _padded: Dict[tuple, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def max_level(self) -> int:
@@ -174,14 +177,35 @@ class Pyramid:
             self.grads = [_scharr_impl(t) for t in self.levels]
         return self
 
+    def padded(self, level: int, pad_h: int, pad_w: int, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """Level ``level`` as ``dtype`` padded by ``pad_h`` rows / ``pad_w`` columns on each side with
+        BORDER_REFLECT_101 (as ``buildOpticalFlowPyramid`` stores its levels), ``(B, 1, H + 2 pad_h,
+        W + 2 pad_w)``. Cached on the pyramid unless the level needs a gradient."""
+        t = self.levels[level]
+        dtype = t.dtype if dtype is None else dtype
+        key = (level, pad_h, pad_w, dtype)
+        out = self._padded.get(key)
+        if out is None:
+            out = pad_reflect101(t.to(dtype), pad_h, pad_w)
+            if not out.requires_grad:
+                self._padded[key] = out
+        return out
+
     def select(self, streams) -> Pyramid:
-        """The pyramid of a subset of streams (``streams``: slice / index tensor along B)."""
+        """The pyramid of a subset of streams (``streams``: slice / index tensor along B); cached
+        padded levels come along (as views for a slice)."""
         g = None if self.grads is None else [t[streams] for t in self.grads]
-        return Pyramid([t[streams] for t in self.levels], g, self.rounded)
+        out = Pyramid([t[streams] for t in self.levels], g, self.rounded)
+        out._padded = {k: v[streams] for k, v in self._padded.items()}
+        return out
 
     def to(self, *args, **kwargs) -> Pyramid:
         g = None if self.grads is None else [t.to(*args, **kwargs) for t in self.grads]
-        return Pyramid([t.to(*args, **kwargs) for t in self.levels], g, self.rounded)
+        out = Pyramid([t.to(*args, **kwargs) for t in self.levels], g, self.rounded)
+        for k, v in self._padded.items():
+            v = v.to(*args, **kwargs)
+            out._padded[k[:3] + (v.dtype,)] = v
+        return out
 
 
 def build_pyramid(

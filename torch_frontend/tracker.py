@@ -382,8 +382,9 @@ class FeatureTracker:
     def _pyramid(self, img_u8: torch.Tensor):
         from .pyramid import build_pyramid
 
-        # uint8 in: the levels are rounded per level as OpenCV's 8-bit pyramid (LK fidelity).
-        return build_pyramid(img_u8, self.lk_kwargs["max_level"])
+        # uint8 in: the levels are rounded per level as OpenCV's 8-bit pyramid (LK fidelity). No
+        # full-image derivatives: the LK takes them from the windows it reads (see lk._template).
+        return build_pyramid(img_u8, self.lk_kwargs["max_level"], with_gradients=False)
 
     def _select_pyramid(self, active: torch.Tensor, new, old):
         # the common case (every stream processed) keeps the new pyramid as it is: no copy of all
@@ -393,7 +394,9 @@ class FeatureTracker:
         from .pyramid import Pyramid
 
         levels = [_where_stream(active, n, o) for n, o in zip(new.levels, old.levels)]
-        grads = [_where_stream(active, n, o) for n, o in zip(new.grads, old.grads)]
+        grads = None
+        if new.grads is not None and old.grads is not None:
+            grads = [_where_stream(active, n, o) for n, o in zip(new.grads, old.grads)]
         return Pyramid(levels=levels, grads=grads, rounded=new.rounded)
 
     # ------------------------------------------------------------------ public API
