@@ -172,7 +172,7 @@ def profile(B: int, n_meas: int = 6) -> str:
     # own time of each torch_frontend function, plus the builtins (torch ops) it calls directly:
     # where the kernels' time lands in our code
     own: dict = {}
-    for key, (cc, nc, tt, ct, callers) in st.stats.items():
+    for key, (_, _, tt, _, callers) in st.stats.items():
         if "torch_frontend" in key[0]:
             own[key] = own.get(key, 0.0) + tt
         elif key[0] == "~":
