@@ -7,9 +7,11 @@ build their pyramids inside the call. OpenCV has no batch: it runs the B pairs o
 other. ``torch`` runs eager (and, with ``--compile``, with ``torch.compile`` of the per-iteration
 kernel, ``torch_frontend.lk.compile_step``; a compile failure is caught and reported in the table).
 Two extra row groups: ``pyr`` = LK on pyramids built beforehand (how the tracker calls it: the
-previous frame's pyramid, with Scharr gradients, is kept; OpenCV's column is its usual call, which
-builds them, as its Python binding takes no pyramids), and ``build`` = ``build_pyramid`` (4
-levels + gradients) vs ``cv2.buildOpticalFlowPyramid`` (4 levels, with derivatives).
+previous frame's pyramid and its padded levels are kept, the next one's levels are padded inside
+the call; OpenCV's column is its usual call, which builds them, as its Python binding takes no
+pyramids), and ``build`` = ``build_pyramid`` (4 levels, padded by win + 1 as the LK reads them; no
+derivatives: the LK takes them from its windows) vs ``cv2.buildOpticalFlowPyramid`` (4 levels,
+with derivatives).
 
 Prints a markdown table (median ms, ratio torch / OpenCV: < 1 means torch is faster) and writes
 ``benchmarks/results/lk.json`` (temp file + rename). Runtime: a few minutes on 2 cores
@@ -142,8 +144,15 @@ def main(argv=None):
             for i in idx:
                 cv2.buildOpticalFlowPyramid(frames[i + 1], (21, 21), 3)
 
-        for mode, f_t, f_cv in (("pyr", lambda pa=pa, pb=pb, pts=pts: track_lk(pa, pb, pts), run_cv_pyr),
-                                ("build", lambda nxt=nxt: build_pyramid(nxt, 3), run_cv_build)):
+        def run_pyr(pa=pa, pb=pb, pts=pts):
+            pb._padded.clear()  # as in the tracker: the previous pyramid's padded levels are kept, the next's are new
+            return track_lk(pa, pb, pts)
+
+        def run_build(nxt=nxt):  # what the tracker builds per frame: 4 levels, padded for LK (win 21)
+            p = build_pyramid(nxt, 3, with_gradients=False)
+            return [p.padded(level, 22, 22) for level in range(4)]
+
+        for mode, f_t, f_cv in (("pyr", run_pyr, run_cv_pyr), ("build", run_build, run_cv_build)):
             t_torch, reps = _time(f_t, args.repeat, device)
             t_cv, _ = _time(f_cv, args.repeat, torch.device("cpu"))
             row = {"mode": mode, "N": n if mode == "pyr" else 0, "B": B, "torch_ms": round(t_torch, 2),
@@ -170,8 +179,9 @@ def main(argv=None):
             "machine": platform.machine(), "size": [752, 480], "repeat": args.repeat,
             "params": {"win_size": 21, "max_level": 3, "max_iters": 30, "eps": 0.01, "input": "uint8"},
             "note": "OpenCV runs the B pairs sequentially; eager/compile rows build both pyramids inside the "
-                    "call; 'pyr' rows track on pyramids built beforehand; 'build' rows build one 4-level pyramid "
-                    "per stream (torch: with Scharr gradients; OpenCV: with derivatives)",
+                    "call; 'pyr' rows track on pyramids built beforehand (the next one padded inside the call); "
+                    "'build' rows build one 4-level pyramid per stream (torch: padded levels, no derivatives, "
+                    "as the tracker; OpenCV: with derivatives)",
             "notes": notes}
     write_json_atomic(out, {"meta": meta, "rows": rows})
     print(f"\nwrote {out}")

@@ -299,8 +299,7 @@ def _interp_flat(f: torch.Tensor, w: torch.Tensor, n: int, pitch: int, off: int 
     ``r``, column ``c``; columns whose taps wrap into the next patch row are junk (callers drop them
     or give them zero weight). One contiguous run of ``n`` values per point and op: on CPU ~1.7x
     faster than ``rows`` short runs for 21x21 windows."""
-    shape = w.shape[1:] + (1,) * (f.dim() - 1)
-    w0, w1, w2, w3 = (w[i].view(shape) for i in range(4))
+    w0, w1, w2, w3 = w.view(w.shape + (1,) * (f.dim() - 1)).unbind(0)
     t0, t1 = f[..., off:off + n], f[..., off + 1:off + 1 + n]
     t2, t3 = f[..., off + pitch:off + pitch + n], f[..., off + pitch + 1:off + pitch + 1 + n]
     if f.requires_grad or w.requires_grad or (init is not None and init.requires_grad):
