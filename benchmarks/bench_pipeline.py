@@ -66,9 +66,9 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     """One configuration, in this process. Returns a dict of measurements.
 
     Each side is timed over ``repeats`` windows of ``n_meas`` consecutive steps (an even count: VINS
-    publishes every other frame at these stamps, so a window holds both kinds of step) and the
-    fastest window counts, as ``timeit`` does: on a shared machine the slower windows measure the
-    neighbours, not the code."""
+    publishes every other frame at these stamps, so a window holds both kinds of step), torch and
+    OpenCV windows alternating, and the fastest window counts, as ``timeit`` does: on a shared
+    machine the slower windows measure the neighbours, not the code."""
     import resource
 
     import cv2
@@ -99,26 +99,7 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     for k in range(n_warm):
         tr.track(batches[k], [stamps[k]] * B)
     sync()
-    t_torch, stages = float("inf"), {}
-    for win in windows:
-        tr.enable_stage_times()
-        t0 = time.perf_counter()
-        for k in win:
-            tr.track(batches[k], [stamps[k]] * B)
-        sync()
-        t = time.perf_counter() - t0
-        if t < t_torch:
-            t_torch, stages = t, {k: v / (n_meas * B) * 1e3 for k, v in (tr.stage_times or {}).items()}
-    res = {
-        "B": B, "threads": threads, "device": device, "compiled": compiled, "steps_per_window": n_meas,
-        "windows": repeats,
-        "torch_ms_per_stream_frame": t_torch / (n_meas * B) * 1e3,
-        "torch_ms_per_step": t_torch / n_meas * 1e3,
-        "stages_ms_per_stream_frame": stages,
-        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-    }
-    if dev.type == "cuda":
-        res["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
+    orcs = None
     if not skip_cv:
         cfg_cv = {
             "max_cnt": cfg.max_cnt, "min_dist": cfg.min_dist, "freq": cfg.freq, "F_threshold": cfg.F_threshold,
@@ -130,13 +111,34 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
         for k in range(n_warm):
             for b in range(B):
                 orcs[b].process(steps[k][b], stamps[k])
-        t_cv = float("inf")
-        for win in windows:
+    # windows alternate between the two sides, so that both see the same machine weather
+    t_torch, stages, t_cv = float("inf"), {}, float("inf")
+    for win in windows:
+        tr.enable_stage_times()
+        t0 = time.perf_counter()
+        for k in win:
+            tr.track(batches[k], [stamps[k]] * B)
+        sync()
+        t = time.perf_counter() - t0
+        if t < t_torch:
+            t_torch, stages = t, {k: v / (n_meas * B) * 1e3 for k, v in (tr.stage_times or {}).items()}
+        if orcs is not None:
             t0 = time.perf_counter()
             for k in win:
                 for b in range(B):
                     orcs[b].process(steps[k][b], stamps[k])
             t_cv = min(t_cv, time.perf_counter() - t0)
+    res = {
+        "B": B, "threads": threads, "device": device, "compiled": compiled, "steps_per_window": n_meas,
+        "windows": repeats,
+        "torch_ms_per_stream_frame": t_torch / (n_meas * B) * 1e3,
+        "torch_ms_per_step": t_torch / n_meas * 1e3,
+        "stages_ms_per_stream_frame": stages,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+    if dev.type == "cuda":
+        res["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
+    if orcs is not None:
         res["opencv_ms_per_stream_frame"] = t_cv / (n_meas * B) * 1e3
         res["ratio"] = res["torch_ms_per_stream_frame"] / res["opencv_ms_per_stream_frame"]
     return res
@@ -175,7 +177,7 @@ def profile(B: int, n_meas: int = 6) -> str:
              f"under torch.profiler. Machine: {machine_description()}", "",
              "| aten op | self CPU share | calls per step | mean µs per call |", "|---|---|---|---|"]
     for e in ev[:15]:
-        lines.append(f"| {e.key} | {e.self_cpu_time_total / total:.1%} | {e.count / n_meas:.0f} | "
+        lines.append(f"| {e.key} | {e.self_cpu_time_total / total:.1%} | {e.count / n_meas:.1f} | "
                      f"{e.self_cpu_time_total / max(e.count, 1):.1f} |")
     pr = cProfile.Profile()
     pr.enable()
@@ -197,7 +199,7 @@ def profile(B: int, n_meas: int = 6) -> str:
     lines += ["", "| torch_frontend function (cProfile) | own time share, with the torch ops it calls |"
               " calls per step |", "|---|---|---|"]
     for key, t in sorted(own.items(), key=lambda kv: kv[1], reverse=True)[:15]:
-        lines.append(f"| {Path(key[0]).name}:{key[1]} {key[2]} | {t / tot:.1%} | {st.stats[key][1] / n_meas:.0f} |")
+        lines.append(f"| {Path(key[0]).name}:{key[1]} {key[2]} | {t / tot:.1%} | {st.stats[key][1] / n_meas:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -220,7 +222,8 @@ def markdown(rows, machine: str) -> str:
     lines = [
         f"Machine: {machine}",
         "",
-        "Each side: the fastest of 3 (B >= 16) or 5 windows of consecutive steps, after 4 warm-up steps.",
+        "Each side: the fastest of 5 (B = 64: 3) windows of consecutive steps after 4 warm-up steps, the two"
+        " sides' windows alternating (peak RSS includes the OpenCV trackers).",
         "",
         "| device | B | threads | mode | torch ms/stream-frame | OpenCV ms/stream-frame | ratio | target | peak RSS MiB |"
         " stages ms/stream-frame (clahe, pyramid, lk, ransac, mask, detection, undistort) |",
@@ -338,7 +341,7 @@ def main(argv=None) -> int:
                 for B in ([b for b in batches if b in (1, 16)] or batches[:1]) if compiled else batches:
                     n_meas = max(2, min(8, 64 // B)) if dev == "cpu" else 8  # even: see run_one
                     spec = dict(B=B, threads=th, device=dev, compiled=compiled, n_warm=4, n_meas=n_meas,
-                                skip_cv=(dev != "cpu" and B not in (1, 64)), repeats=5 if B <= 4 else 3)
+                                skip_cv=(dev != "cpu" and B not in (1, 64)), repeats=5 if B <= 16 else 3)
                     t0 = time.time()
                     out = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)],
                                          capture_output=True, text=True, timeout=900)

@@ -289,8 +289,12 @@ def test_batch_equals_separate_calls_and_modes(cam0, device):
         lk_mod._MAX_STREAMS = 1
         og, sg = track_lk(tA, tB, pts, valid)
         assert torch.equal(sg, st) and torch.equal(og, out)
-        og, sg = track_lk(build_pyramid(tA, 3), build_pyramid(tB, 3), pts, valid, forward_backward=True)
+        qa, qb = build_pyramid(tA, 3), build_pyramid(tB, 3)
+        og, sg = track_lk(qa, qb, pts, valid, forward_backward=True)
         assert torch.equal(sg, ref_fb[1]) and torch.equal(og, ref_fb[0])
+        # the padded levels (win 21 -> pad 22) are built once for the whole batch and stay on the
+        # pyramids: the next image's are reused when it becomes the previous one
+        assert (0, 22, 22, pts.dtype) in qb._padded and qb._padded[(0, 22, 22, pts.dtype)].shape[0] == 3
     finally:
         lk_mod._MAX_STREAMS = old
     # pyramids built once (as the tracker keeps them) and the sync-free fixed-iteration mode

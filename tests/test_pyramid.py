@@ -106,6 +106,28 @@ def test_batch_and_layouts(frame):
     assert pb.sizes() == [(100, 120), (50, 60), (25, 30)]
 
 
+def test_grouped_build_and_padded_cache(frame, monkeypatch):
+    """Large CPU batches are built in groups of streams: same levels and gradients as one pass.
+    Padded levels are cached per (level, pad, dtype) and come along with select()."""
+    import torch_frontend.pyramid as pyramid_mod
+
+    imgs = torch.from_numpy(np.stack([frame[:100, :120], frame[50:150, 100:220], frame[200:300, 300:420]]))
+    whole = build_pyramid(imgs, max_level=2)
+    monkeypatch.setattr(pyramid_mod, "_BATCH_PIXELS", 100)
+    monkeypatch.setattr(pyramid_mod, "_BLOCK_PIXELS", 100 * 120)  # one stream per group
+    grouped = build_pyramid(imgs, max_level=2)
+    for l in range(3):
+        assert torch.equal(grouped.levels[l], whole.levels[l])
+        assert torch.equal(grouped.grads[l], whole.grads[l])
+    p = grouped.padded(1, 3, 4)
+    assert p.shape == (3, 1, 56, 68)
+    assert torch.equal(p, pad_reflect101(grouped.levels[1], 3, 4))
+    assert grouped.padded(1, 3, 4) is p  # cached
+    assert grouped.padded(1, 3, 4, torch.float64).dtype == torch.float64
+    sub = grouped.select(slice(1, 3))
+    assert torch.equal(sub.padded(1, 3, 4), p[1:3])
+
+
 def test_pad_reflect101_matches_cv2():
     x = np.arange(12, dtype=np.float32).reshape(3, 4)
     for p in (1, 2, 5, 9):  # pads larger than the image need repeated reflection
