@@ -152,7 +152,9 @@ class Pyramid:
     Attributes:
         levels: ``L + 1`` tensors ``(B, 1, H_l, W_l)`` float grey levels, level 0 = the image.
         grads: ``None`` or ``L + 1`` tensors ``(B, 2, H_l, W_l)`` Scharr ``(Ix, Iy)`` of each level
-            (needed when the pyramid is the *previous* image of an LK call).
+            (optional: the LK computes the derivatives it needs from its own windows).
+        The LK also caches padded copies of the levels here (:meth:`padded`), so that a pyramid
+        that was the next image of one call is not padded again as the previous image of the next.
         rounded: levels hold OpenCV's 8-bit values (built from uint8 with per-level rounding); LK
             then defaults to its fixed-point emulation.
     """
@@ -162,7 +164,7 @@ class Pyramid:
     rounded: bool = False
     # padded copies of the levels, keyed by (level, pad_h, pad_w, dtype): built once when the
     # pyramid is the *next* image of an LK call and reused when it is the *previous* one
-    _padded: Dict[tuple, torch.Tensor] = field(default_factory=dict, repr=False, compare=False)
+    _padded: Dict[tuple, torch.Tensor] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def max_level(self) -> int:
@@ -225,7 +227,8 @@ def build_pyramid(
     Args:
         img: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float grey levels 0..255.
         max_level: last level index (3 => 4 levels), >= 0.
-        with_gradients: also compute Scharr ``(Ix, Iy)`` per level (needed for the previous image).
+        with_gradients: also compute full-image Scharr ``(Ix, Iy)`` per level (as
+            ``buildOpticalFlowPyramid(withDerivatives=True)``; the LK does not need them).
         round_levels: round every level to the nearest integer (half up) before down-sampling the
             next one, exactly as OpenCV does for 8-bit images. Default: True for uint8 input, False
             for float input (keeps the pyramid differentiable w.r.t. the image).
@@ -235,7 +238,8 @@ def build_pyramid(
 
     Convention:
         Unlike OpenCV the levels are stored without the ``win_size`` border; the LK pads them itself
-        (BORDER_REFLECT_101 for images, zeros for derivatives, as ``calcOpticalFlowPyrLK``). OpenCV
+        once (BORDER_REFLECT_101, cached: :meth:`Pyramid.padded`) and treats derivatives outside the
+        image as zeros, as ``calcOpticalFlowPyrLK``. OpenCV
         also stops building when a level would be <= ``win_size``; LK applies that cap for its own
         ``win_size``, so here all requested levels are built.
     """
