@@ -224,7 +224,7 @@ def _gather(view: torch.Tensor, flat: torch.Tensor, base: torch.Tensor, offs: to
 
 
 def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k: dict, spanm1,
-             first: bool, fixed: bool, eps2: float, osc_thr: float):
+             first: bool, fixed: bool, eps2: float, osc_thr: float, iv_init: bool = False):
     """One LK iteration for ``m`` lanes (pure tensor function; ``torch.compile``-able).
 
     ``p``: (2, m) window origins (OpenCV's local ``nextPt``), ``pd``: previous deltas, ``act``: lanes
@@ -251,19 +251,20 @@ def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k:
     n = (jp.shape[1] - 2) * pw
     jp = jp.reshape(jp.shape[0], -1)
     frac = p - ip
+    # iv, g in the pitched layout (m, wh * pw), (m, 2, wh * pw): g is 0 on the junk column
     if fixed:  # OpenCV: CV_DESCALE(sum iw J, W_BITS1 - 5) = floor(sum iw J / 2^9 + 1/2), exact in float
         w = _fixed_weights(frac, k, "iw9")
         if w.dtype != p.dtype:
             w = w.to(p.dtype)
-        if frac.requires_grad or jp.requires_grad:  # straight-through: gradient of the float version
+        if iv_init:  # iv holds 1/2 - template: floor(x + 1/2) - iv = floor(x + (1/2 - iv)), iv integer
+            diff = _interp_flat(jp, w, n, pw, 0, iv).floor_()
+        elif frac.requires_grad or jp.requires_grad:  # straight-through: gradient of the float version
             jval = _interp_flat(jp, _ste(_soft_weights(frac) * 32.0, w), n, pw, 0, c05)
-            jval = _ste(jval - 0.5, torch.floor(jval))
+            diff = _ste(jval - 0.5, torch.floor(jval)) - iv
         else:
-            jval = _interp_flat(jp, w, n, pw, 0, c05).floor_()
+            diff = _interp_flat(jp, w, n, pw, 0, c05).floor_().sub_(iv)
     else:  # x32: grey levels in 1/32 units (exact scaling)
-        jval = _interp_flat(jp, _soft_weights(frac) * 32.0, n, pw)
-    # iv, g in the pitched layout (m, wh * pw), (m, 2, wh * pw): g is 0 on the junk column
-    diff = jval - iv
+        diff = _interp_flat(jp, _soft_weights(frac) * 32.0, n, pw) - iv
     b = (g * diff.unsqueeze(1)).sum(2).t() * _FLT_SCALE  # (2, m): b1, b2
     # OpenCV: delta = ((A12 b2 - A22 b1) D, (A12 b1 - A11 b2) D), same float operation order
     delta = (a12 * b.flip(0) - adiag * b) * dinv
@@ -476,6 +477,12 @@ def _lk_impl(
         adiag = torch.stack((a22, a11))
 
         # ---- iterations: only the next image is sampled
+        # fixed point without gradients: the iterations add the rounding's 1/2 and subtract the
+        # template in the interpolation's first multiply-add (one pass less per iteration; exact:
+        # integers and multiples of 2^-9 below 2^14)
+        iv_init = fixed and not (iv.requires_grad or lv.Jp.requires_grad or o0.requires_grad)
+        if iv_init:
+            iv = k["c05"] - iv
         fail = ~ok if level == 0 else None  # level 0: status 0 for failed eigenvalue test / lost lanes
         act = ok
         lane = None if lanes is None else lanes * lv.HWp
@@ -505,7 +512,7 @@ def _lk_impl(
                     fail = None if fail is None else torch.zeros_like(act)
             act_in = act
             p, pd, act, mv, osc = _STEP[0](p, pd, act, iv, g, a12, adiag, dinv, lane, *st,
-                                           j == 0, fixed, eps2, osc_thr)
+                                           j == 0, fixed, eps2, osc_thr, iv_init)
             if j == 0:
                 moved = mv  # a lane moves at j > 0 only if it moved at j = 0
                 oscf = torch.zeros_like(mv)
