@@ -189,9 +189,7 @@ class _Level:
 
     def __init__(self, Ip, Jp, H, W, win, dtype):
         ww, wh = win
-        B = Jp.shape[0]
-        self.H, self.W, self.B = H, W, B
-        self.ww, self.wh, self.ph, self.pw = ww, wh, wh + 1, ww + 1
+        self.ww, self.wh = ww, wh
         Hp, Wp = H + 2 * wh + 2, W + 2 * ww + 2
         self.Wp, self.HWp = Wp, Hp * Wp
         self.rowin, self.colin, self.spanm1 = _level_tables(H, W, ww, wh, dtype, Jp.device)

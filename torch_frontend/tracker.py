@@ -388,16 +388,13 @@ class FeatureTracker:
 
     def _select_pyramid(self, active: torch.Tensor, new, old):
         # the common case (every stream processed) keeps the new pyramid as it is: no copy of all
-        # levels and gradients (one host sync to know)
+        # levels (one host sync to know). The tracker's pyramids carry no gradients (see _pyramid).
         if old is None or bool(active.all()):
             return new
         from .pyramid import Pyramid
 
         levels = [_where_stream(active, n, o) for n, o in zip(new.levels, old.levels)]
-        grads = None
-        if new.grads is not None and old.grads is not None:
-            grads = [_where_stream(active, n, o) for n, o in zip(new.grads, old.grads)]
-        return Pyramid(levels=levels, grads=grads, rounded=new.rounded)
+        return Pyramid(levels=levels, rounded=new.rounded)
 
     # ------------------------------------------------------------------ public API
 

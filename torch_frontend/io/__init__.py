@@ -1,5 +1,6 @@
 """Readers: OpenCV FileStorage YAML, datasets (EuRoC/TUM-VI ASL folders, image folders, ROS bags)."""
 
+from .._lazy import lazy_exports
 from .euroc import EurocSequence, camera_from_sensor_yaml, config_from_sensor_yaml, euroc_config
 from .folder import ImageFolderSequence
 from .frames import DataError, Frame, Sequence, decode_image, read_image
@@ -7,23 +8,13 @@ from .fsyaml import read_opencv_yaml
 from .rosbag import RosbagSequence, list_image_topics
 from .sources import open_sequence
 
-
-def __getattr__(name):
-    # MultiStream/Batch need torch; importing them lazily keeps ``torch_frontend.config`` (which
-    # imports ``io.fsyaml``, hence this package) free of a torch import.
-    if name in ("MultiStream", "Batch"):
-        from . import multistream
-
-        return getattr(multistream, name)
-    if name in _TRAJECTORY:
-        from . import trajectory
-
-        return getattr(trajectory, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 _TRAJECTORY = ("Trajectory", "read_trajectory", "write_tum", "write_vins_csv", "interpolate", "covered",
                "associate", "align_se3", "ate_rmse", "add_drift")
+
+# MultiStream/Batch need torch; importing them lazily keeps ``torch_frontend.config`` (which imports
+# ``io.fsyaml``, hence this package) free of a torch import
+__getattr__, __dir__ = lazy_exports(
+    __name__, {"MultiStream": "multistream", "Batch": "multistream", **{n: "trajectory" for n in _TRAJECTORY}})
 
 __all__ = [*_TRAJECTORY,
     "read_opencv_yaml",
