@@ -1,8 +1,8 @@
 """Image-stage benchmark: torch-frontend vs OpenCV on 752x480 EuRoC frames, B = 1 and 8.
 
 Times ``clahe``, ``min_eigen_response``, ``good_features_to_track`` (150 corners, quality 0.01,
-min distance 30), ``distance_mask`` (VINS setMask, 150 tracked points, radius 30) and, when the
-module exists, ``build_pyramid(img, 3)``. OpenCV runs the same work image by image (it has no
+min distance 30), ``distance_mask`` (VINS setMask, 150 tracked points, radius 30) and
+``build_pyramid(img, 3)``. OpenCV runs the same work image by image (it has no
 batch); the setMask baseline is the sequential loop with ``cv2.circle`` as VINS does it, in
 Python. Prints a markdown table (median and min ms per call, ms per image, ratio of medians
 torch / OpenCV: < 1 means torch is faster) and writes ``benchmarks/results/image.json`` (temp
@@ -26,17 +26,13 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torch_frontend.clahe import clahe  # noqa: E402
 from torch_frontend.corners import good_features_to_track, min_eigen_response  # noqa: E402
+from torch_frontend.equalize import clahe  # noqa: E402
 from torch_frontend.masks import distance_mask  # noqa: E402
+from torch_frontend.pyramid import build_pyramid  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import apply_threads, kernel_bench_parser, time_pair, write_json_atomic  # noqa: E402
-
-try:
-    from torch_frontend.pyramid import build_pyramid  # noqa: E402
-except ImportError:  # the pyramid module is owned elsewhere; skip when absent
-    build_pyramid = None
 
 FRAMES = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 
@@ -70,10 +66,9 @@ def _cases(B, raw, eq, tracked, cnts, cl, device):
          lambda: [cv2.goodFeaturesToTrack(f, 150, 0.01, 30) for f in eq[:B]]),
         ("distance_mask", lambda: distance_mask(pts, cnt, None, 30, height=H, width=W),
          lambda: [_setmask_cv(tracked[b], cnts[b], 30, H, W) for b in range(B)]),
+        ("build_pyramid(3)", lambda: build_pyramid(x_eq, 3),
+         lambda: [cv2.buildOpticalFlowPyramid(f, (21, 21), 3) for f in eq[:B]]),
     ]
-    if build_pyramid is not None:
-        cases.append(("build_pyramid(3)", lambda: build_pyramid(x_eq, 3),
-                      lambda: [cv2.buildOpticalFlowPyramid(f, (21, 21), 3) for f in eq[:B]]))
     return cases
 
 

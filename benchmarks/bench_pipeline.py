@@ -2,7 +2,7 @@
 
 Both run in the same process on the same frames. For each row: milliseconds per stream-frame for
 torch-frontend (B streams in one tracker) and for OpenCV (a loop of B single-stream oracle trackers,
-``benchmarks/vins_oracle.py``), the ratio, peak memory, and torch's per-stage breakdown.
+``torch_frontend.testing.oracle``), the ratio, peak memory, and torch's per-stage breakdown.
 
 Each configuration runs in its own subprocess so that peak RSS belongs to it alone, and torch and
 OpenCV get the same thread count (``torch.set_num_threads`` / ``cv2.setNumThreads``).
@@ -75,10 +75,8 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     import numpy as np
     import torch
 
-    sys.path.insert(0, str(HERE))
-    import vins_oracle
-
     import torch_frontend as tf
+    from torch_frontend.testing import oracle
 
     torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
@@ -107,7 +105,7 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
             "image_height": cfg.image_height,
             "camera": {"model_type": cfg.camera.model_type, **cfg.camera.params_dict()},
         }
-        orcs = [vins_oracle.OracleMonoTracker(cfg_cv) for _ in range(B)]
+        orcs = [oracle.OracleMonoTracker(cfg_cv) for _ in range(B)]
         for k in range(n_warm):
             for b in range(B):
                 orcs[b].process(steps[k][b], stamps[k])

@@ -35,8 +35,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from torch_frontend.geometry import R_to_quat, R_to_ypr, ypr_to_R  # noqa: E402
 from torch_frontend.loop import optimize as opt  # noqa: E402
-from torch_frontend.loop.geometry import R_to_quat, R_to_ypr, ypr_to_R  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, apply_threads, sync, write_json_atomic  # noqa: E402

@@ -28,7 +28,7 @@ from torch_frontend.camera import (
 )
 from torch_frontend.camera.kannala_brandt import effective_coefficients, solve_theta
 from torch_frontend.errors import ConfigError
-from torch_frontend.io import read_opencv_yaml
+from torch_frontend.opencv_yaml import read_opencv_yaml
 
 # ---------------------------------------------------------------------------------------------
 # Calibrations built in the test (spec §1.3 EuRoC values; others copied from the shipped configs

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_frontend.clahe import clahe
+from torch_frontend.equalize import clahe
 from torch_frontend.errors import ConfigError
 
 from .conftest import load_gray, sample_frames
@@ -66,12 +66,31 @@ def test_clahe_errors():
 
 def test_clahe_cpu_row_blocks_equal_one_block(monkeypatch):
     """The CPU row blocking (cache-sized pixel blocks) does not change the result."""
-    import torch_frontend.clahe as clahe_mod
+    import dataclasses
+
+    from torch_frontend import _tuning
 
     b = torch.from_numpy(np.stack([x[:120, :200] for x in _frames(2)]))[:, None]
     ref = clahe(b)
-    monkeypatch.setattr(clahe_mod, "_BLOCK_PIXELS", 1000)  # 5 rows per block, crossing streams
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)  # no blocking, as on other devices
     assert torch.equal(clahe(b), ref)
-    monkeypatch.setattr(clahe_mod, "_BLOCK_PIXELS", 1)  # one row per block; padded (49x61) size
+    blocks = dataclasses.replace(_tuning.CPU, clahe_block_pixels=1000)  # 5 rows per block, crossing streams
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", blocks)
+    assert torch.equal(clahe(b), ref)
+    blocks = dataclasses.replace(_tuning.CPU, clahe_block_pixels=1)  # one row per block; padded (49x61) size
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", blocks)
     dmax, same = _compare(np.ascontiguousarray(b[:, 0, :49, :61].numpy()), "cpu")
     assert dmax == 0 and same == 1.0
+
+
+def test_public_name_is_the_function_after_module_import():
+    """The module is ``equalize``: importing it (as the tracker does) leaves ``torch_frontend.clahe``
+    the function (a module of the same name would replace the package attribute)."""
+    import importlib
+
+    import torch_frontend as tf
+
+    importlib.import_module("torch_frontend.equalize")
+    assert callable(tf.clahe) and tf.clahe is clahe
+    out = tf.clahe(torch.zeros(1, 16, 16, dtype=torch.uint8))
+    assert out.shape == (1, 16, 16) and out.dtype == torch.uint8

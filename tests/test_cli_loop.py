@@ -18,10 +18,10 @@ import pytest
 import torch
 
 from torch_frontend.cli import main
-from torch_frontend.io.trajectory import Trajectory, read_trajectory, write_tum, write_vins_csv
-from torch_frontend.loop import run as loop_run
-from torch_frontend.loop.geometry import R_to_quat
+from torch_frontend.geometry import R_to_quat
 from torch_frontend.loop.report import LOOP_COLUMNS, OUTPUT_FILES, STREAM_FILES
+from torch_frontend.pipelines import loop as loop_run
+from torch_frontend.trajectory import Trajectory, read_trajectory, write_tum, write_vins_csv
 
 from .test_cli import assert_one_error_line, run_cli
 

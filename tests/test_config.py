@@ -1,17 +1,22 @@
-"""Config loader: OpenCV FileStorage YAML, VINS-Mono and VINS-Fusion keys, errors."""
+"""Config loader: OpenCV FileStorage YAML, VINS-Mono and VINS-Fusion keys, ASL sensor.yaml, errors."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import torch
 
 from torch_frontend import ConfigError, load_camera, load_config
-from torch_frontend.io import read_opencv_yaml
+from torch_frontend.config import camera_from_sensor_yaml, config_from_sensor_yaml
+from torch_frontend.opencv_yaml import read_opencv_yaml
 
-from .conftest import REPO, SHARED_DATA
+from .conftest import REPO, SAMPLE, SHARED_DATA
 
 CONFIGS = REPO / "configs"
 
@@ -184,3 +189,56 @@ def test_every_vins_config_loads():
     assert tum.fisheye and type(tum.camera).__name__ == "KannalaBrandtCamera"
     sim = load_config(root / "vins_mono" / "simulation" / "simulation_config.yaml")
     assert sim.camera is None and sim.flavour == "estimator"
+
+
+def test_sensor_yaml_camera_and_config(tmp_path):
+    from torch_frontend.camera import PinholeCamera
+
+    cam = camera_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
+    assert isinstance(cam, PinholeCamera)
+    assert (cam.width, cam.height) == (752, 480)
+    p = cam.params_dict()
+    assert float(p["fx"]) == 458.654 and float(p["cy"]) == 248.375 and float(p["k1"]) == -0.28340811
+    # the parameter mapping agrees with OpenCV's radial-tangential projection
+    rng = np.random.default_rng(0)
+    P = np.concatenate([rng.uniform(-0.6, 0.6, (50, 2)), np.ones((50, 1))], axis=1)
+    K = np.array([[458.654, 0, 367.215], [0, 457.296, 248.375], [0, 0, 1.0]])
+    dist = np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
+    ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)
+    got = cam.project(torch.from_numpy(P)).numpy()
+    np.testing.assert_allclose(got, ref[:, 0], atol=1e-9)
+
+    cfg = config_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
+    assert (cfg.image_width, cfg.image_height, cfg.max_cnt, cfg.min_dist, cfg.freq) == (752, 480, 150, 30, 10)
+    assert cfg.equalize and cfg.camera is not None
+
+    # TUM-VI: equidistant -> Kannala-Brandt; bad models are ConfigErrors naming the key
+    y = tmp_path / "sensor.yaml"
+    y.write_text("%YAML:1.0\nresolution: [512, 512]\nintrinsics: [190.9, 190.9, 254.9, 256.8]\n"
+                 "camera_model: pinhole\ndistortion_model: equidistant\n"
+                 "distortion_coefficients: [0.0034, 0.00071, -0.0021, 0.00020]\n")
+    kb = camera_from_sensor_yaml(y)
+    assert type(kb).__name__ == "KannalaBrandtCamera" and float(kb.params_dict()["k2"]) == 0.0034
+    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3]\n")
+    with pytest.raises(ConfigError, match="intrinsics"):
+        camera_from_sensor_yaml(y)
+    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3, 4]\ndistortion_model: weird\n"
+                 "distortion_coefficients: [0, 0, 0, 0]\n")
+    with pytest.raises(ConfigError, match="distortion_model"):
+        camera_from_sensor_yaml(y)
+
+
+def test_import_config_loads_neither_torch_nor_readers():
+    """``torch_frontend.config`` (and the OpenCV-YAML reader below it) stay light: no torch, no
+    dataset readers, no ROS-bag library, no OpenCV; reading a config file keeps it so."""
+    code = (
+        "import sys\n"
+        "import torch_frontend.config as c\n"
+        "c.read_opencv_yaml(sys.argv[1])\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'cv2', 'rosbags', 'kornia')\n"
+        "             or m == 'torch_frontend.io' or m.startswith('torch_frontend.io.'))\n"
+        "print(' '.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(CONFIGS / "euroc.yaml")], capture_output=True,
+                         text=True, cwd=REPO, check=True).stdout.split()
+    assert out == [], f"import torch_frontend.config loaded: {out}"

@@ -256,13 +256,17 @@ def test_gftt_selection_signed_responses(dtype):
 
 def test_cpu_stream_blocks_equal_one_block(frames, monkeypatch):
     """The CPU grouping of streams (cache-sized blocks) does not change any result."""
-    import torch_frontend.corners as corners
+    import dataclasses
+
+    from torch_frontend import _tuning
 
     x = torch.from_numpy(frames[:3, :96, :128].copy())[:, None]
     ref_r = min_eigen_response(x)
     ref_h = harris_response(x)
     ref_p, ref_v = good_features_to_track(x, 40, 0.01, 7)
-    monkeypatch.setattr(corners, "_BLOCK_PIXELS", 1)  # one stream per block
+    blocks = dataclasses.replace(_tuning.CPU, corner_block_pixels=1)
+    assert blocks.corner_streams(3, 96, 128) == 1
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", blocks)  # one stream per block
     assert torch.equal(min_eigen_response(x), ref_r) and torch.equal(harris_response(x), ref_h)
     p, v = good_features_to_track(x, 40, 0.01, 7)
     assert torch.equal(p, ref_p) and torch.equal(v, ref_v)

@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from tests.conftest import REPO, SAMPLE, load_gray, sample_frames, shared_data_or_skip
-from torch_frontend.errors import ConfigError
 from torch_frontend.io import (
     DataError,
     EurocSequence,
@@ -25,6 +24,7 @@ from torch_frontend.io import (
     RosbagSequence,
     camera_from_sensor_yaml,
     config_from_sensor_yaml,
+    euroc_config,
     list_image_topics,
     open_sequence,
     read_image,
@@ -203,41 +203,30 @@ def test_euroc_reader(tmp_path):
     assert abs(frames[1].timestamp - frames[0].timestamp - 0.05) < 1e-6
 
 
-def test_euroc_sensor_yaml_camera(tmp_path):
-    from torch_frontend.camera import PinholeCamera
+def test_io_reexports_the_foundation_names():
+    """The documented ``torch_frontend.io`` names of the readers below it are those objects."""
+    import torch_frontend.config as config
+    import torch_frontend.io as io_pkg
+    import torch_frontend.opencv_yaml as opencv_yaml
+    import torch_frontend.trajectory as trajectory
 
-    cam = camera_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
-    assert isinstance(cam, PinholeCamera)
-    assert (cam.width, cam.height) == (752, 480)
-    p = cam.params_dict()
-    assert float(p["fx"]) == 458.654 and float(p["cy"]) == 248.375 and float(p["k1"]) == -0.28340811
-    # the parameter mapping agrees with OpenCV's radial-tangential projection
-    rng = np.random.default_rng(0)
-    P = np.concatenate([rng.uniform(-0.6, 0.6, (50, 2)), np.ones((50, 1))], axis=1)
-    K = np.array([[458.654, 0, 367.215], [0, 457.296, 248.375], [0, 0, 1.0]])
-    dist = np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05])
-    ref, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, dist)
-    got = cam.project(torch.from_numpy(P)).numpy()
-    np.testing.assert_allclose(got, ref[:, 0], atol=1e-9)
+    assert io_pkg.read_opencv_yaml is opencv_yaml.read_opencv_yaml
+    assert camera_from_sensor_yaml is config.camera_from_sensor_yaml
+    assert config_from_sensor_yaml is config.config_from_sensor_yaml
+    for name in ("Trajectory", "read_trajectory", "write_tum", "write_vins_csv", "interpolate", "covered",
+                 "associate", "align_se3", "ate_rmse", "add_drift"):
+        assert getattr(io_pkg, name) is getattr(trajectory, name), name
+        assert name in dir(io_pkg)
+    for name in io_pkg.__all__:
+        assert getattr(io_pkg, name) is not None, name
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        io_pkg.nope  # noqa: B018
 
-    cfg = config_from_sensor_yaml(SAMPLE / "mav0" / "cam0" / "sensor.yaml")
+
+def test_euroc_config_from_folder():
+    cfg = euroc_config(SAMPLE)
     assert (cfg.image_width, cfg.image_height, cfg.max_cnt, cfg.min_dist, cfg.freq) == (752, 480, 150, 30, 10)
-    assert cfg.equalize and cfg.camera is not None
-
-    # TUM-VI: equidistant -> Kannala-Brandt; bad models are ConfigErrors naming the key
-    y = tmp_path / "sensor.yaml"
-    y.write_text("%YAML:1.0\nresolution: [512, 512]\nintrinsics: [190.9, 190.9, 254.9, 256.8]\n"
-                 "camera_model: pinhole\ndistortion_model: equidistant\n"
-                 "distortion_coefficients: [0.0034, 0.00071, -0.0021, 0.00020]\n")
-    kb = camera_from_sensor_yaml(y)
-    assert type(kb).__name__ == "KannalaBrandtCamera" and float(kb.params_dict()["k2"]) == 0.0034
-    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3]\n")
-    with pytest.raises(ConfigError, match="intrinsics"):
-        camera_from_sensor_yaml(y)
-    y.write_text("resolution: [512, 512]\nintrinsics: [1, 2, 3, 4]\ndistortion_model: weird\n"
-                 "distortion_coefficients: [0, 0, 0, 0]\n")
-    with pytest.raises(ConfigError, match="distortion_model"):
-        camera_from_sensor_yaml(y)
+    assert cfg.equalize and cfg.path.endswith("sensor.yaml")
 
 
 def test_euroc_errors(tmp_path):
@@ -292,7 +281,7 @@ def test_image_folder_timestamps(tmp_path):
     for i, f in enumerate(src):
         shutil.copy(f, num / f"{i:06d}.png")
     (num / "notes.txt").write_text("ignored")
-    with pytest.raises(DataError, match="give --fps"):
+    with pytest.raises(DataError, match=r"give a frame rate \(fps\)"):
         ImageFolderSequence(num)
     seq = ImageFolderSequence(num, fps=20)
     frames = list(seq)
@@ -309,6 +298,10 @@ def test_image_folder_errors(tmp_path):
     (tmp_path / "f.png").write_bytes(b"")
     with pytest.raises(DataError, match="not a folder"):
         ImageFolderSequence(tmp_path / "f.png")
+    (tmp_path / "g").mkdir()
+    shutil.copy(sample_frames()[0], tmp_path / "g" / "000001.png")
+    with pytest.raises(DataError, match=r"fps: expected a frame rate > 0 \(Hz\), got 0"):
+        ImageFolderSequence(tmp_path / "g", fps=0)
 
 
 # ----------------------------------------------------------------------------------------------

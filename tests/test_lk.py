@@ -4,7 +4,11 @@ warps of real frames, Middlebury Motorcycle), batching, gradients.
 Acceptance bars (issue 5): status agreement >= 99 %; among points both call valid, median
 ``|delta| <= 0.02`` px and 95th percentile ``<= 0.1`` px; median end-point error vs ground truth
 ``<= 1.1x`` OpenCV's own; false-valid rate (status 1, error > 1 px) printed, ``<= 1 %`` with the
-forward–backward check where OpenCV's algorithm itself can reach it (see ``test_motorcycle_vs_gt``).
+forward–backward check where OpenCV's algorithm itself can reach it (see ``test_motorcycle_vs_gt``);
+on the EuRoC temporal pairs >= 99 % of the points bit-identical to OpenCV (the fixed-point
+emulation; without it 7.9 %, which only this bar detects). Larger motions (stereo, warps) need more
+iterations, and the float summation order of the 2x2 systems then leaves 60-90 % bit-identical
+(printed as ``bit-identical``), within the distance bars.
 """
 
 from __future__ import annotations
@@ -53,13 +57,22 @@ def gftt(img, n=300, min_dist=10):
     return cv2.goodFeaturesToTrack(img, n, 0.01, min_dist).reshape(-1, 2).astype(np.float32)
 
 
+def bit_identical(ours, st, ref, st_ref):
+    """Fraction of points exactly as OpenCV: same status and, where both track, the same float32
+    position bit for bit."""
+    both = st & st_ref
+    same_pos = np.all(ours.astype(np.float32) == ref.astype(np.float32), axis=1)
+    return float(np.mean((st == st_ref) & (~both | same_pos)))
+
+
 def fidelity(name, ours, st, ref, st_ref):
     agree = float(np.mean(st == st_ref))
     both = st & st_ref
     d = np.linalg.norm(ours - ref, axis=1)[both]
     med, p95 = float(np.median(d)), float(np.percentile(d, 95))
     print(f"[{name}] n={len(st)} status agree={agree:.4f} valid={both.mean():.3f} "
-          f"median|d|={med:.2e} p95|d|={p95:.2e} max|d|={d.max():.2e}")
+          f"median|d|={med:.2e} p95|d|={p95:.2e} max|d|={d.max():.2e} "
+          f"bit-identical={bit_identical(ours, st, ref, st_ref):.4f}")
     assert agree >= 0.99, (name, agree)
     assert med <= 0.02 and p95 <= 0.1, (name, med, p95)
     return agree, med, p95
@@ -117,20 +130,34 @@ def cam1():
 
 
 # ------------------------------------------------------------------------------ fidelity vs cv2
-def test_euroc_temporal_vs_cv2_batched(cam0):
-    """4 consecutive-frame pairs (one with a 3-frame gap) as B=4 streams in one call."""
+# fraction of points bit-identical to cv2 on the EuRoC temporal pairs (the tracker's case): 99.2 %
+# measured with the fixed-point emulation, 7.9 % without it (the other bars pass either way)
+BIT_IDENTICAL_BAR = 0.99
+
+
+@pytest.mark.parametrize("fixed_point", [None, False], ids=["fixed_point", "float_guard"])
+def test_euroc_temporal_vs_cv2_batched(cam0, fixed_point):
+    """4 consecutive-frame pairs (one with a 3-frame gap) as B=4 streams in one call. At least 99 %
+    of the points are bit-identical to OpenCV's; the ``float_guard`` case shows that the bar fails
+    when the fixed-point emulation is off (float interpolation still passes the distance bars)."""
     pairs = [(0, 1), (7, 8), (15, 16), (20, 23)]
     pts = [gftt(cam0[i]) for i, _ in pairs]
     n = min(len(p) for p in pts)
     pts = [p[:n] for p in pts]
-    out, st = track_lk(t_img(*[cam0[i] for i, _ in pairs]), t_img(*[cam0[j] for _, j in pairs]), t_pts(*pts))
+    out, st = track_lk(t_img(*[cam0[i] for i, _ in pairs]), t_img(*[cam0[j] for _, j in pairs]), t_pts(*pts),
+                       fixed_point=fixed_point)
     assert out.shape == (4, n, 2) and st.shape == (4, n) and st.dtype == torch.bool
     allo, alls, allr, allsr = [], [], [], []
     for b, (i, j) in enumerate(pairs):
         ref, st_ref = cv_lk(cam0[i], cam0[j], pts[b])
         allo.append(out[b].numpy()), alls.append(st[b].numpy()), allr.append(ref), allsr.append(st_ref)
-    fidelity("euroc temporal", np.concatenate(allo), np.concatenate(alls), np.concatenate(allr),
-             np.concatenate(allsr))
+    ours, status, ref, st_ref = (np.concatenate(x) for x in (allo, alls, allr, allsr))
+    fidelity("euroc temporal", ours, status, ref, st_ref)
+    bits = bit_identical(ours, status, ref, st_ref)
+    if fixed_point is None:
+        assert bits >= BIT_IDENTICAL_BAR, bits
+    else:
+        assert bits < BIT_IDENTICAL_BAR, bits  # the bar catches a lost fixed-point emulation
 
 
 def test_euroc_stereo_vs_cv2(cam0, cam1):
@@ -257,7 +284,7 @@ def test_initial_flow_and_small_image_cap(cam0):
     assert np.abs(out[0].numpy() - ref)[st_ref].max() <= 1e-3
 
 
-def test_batch_equals_separate_calls_and_modes(cam0, device):
+def test_batch_equals_separate_calls_and_modes(cam0, device, monkeypatch):
     """B streams x N points in one call == B separate calls; pyramid reuse, early_exit=False and
     padded invalid lanes change nothing."""
     idx = [(0, 1), (9, 10), (17, 19)]
@@ -279,14 +306,15 @@ def test_batch_equals_separate_calls_and_modes(cam0, device):
         assert (o1[0] - out[b]).abs().max() <= 1e-4
     assert not st[1, ::3].any()
     assert torch.equal(out[1, ::3], pts[1, ::3])  # padded lanes untouched
-    # large batches are processed in groups of streams: same results (group size forced to 1 here),
-    # for image and pyramid inputs, with the backward check too
-    import torch_frontend.lk as lk_mod
+    # large CPU batches are processed in groups of streams: same results (group size forced to 1
+    # here, on this test's device), for image and pyramid inputs, with the backward check too
+    import dataclasses
+
+    from torch_frontend import _tuning
 
     ref_fb = track_lk(tA, tB, pts, valid, forward_backward=True)
-    old = lk_mod._MAX_STREAMS
-    try:
-        lk_mod._MAX_STREAMS = 1
+    with monkeypatch.context() as mp:
+        mp.setitem(_tuning.STRATEGIES, device.type, dataclasses.replace(_tuning.CPU, lk_max_streams=1))
         og, sg = track_lk(tA, tB, pts, valid)
         assert torch.equal(sg, st) and torch.equal(og, out)
         qa, qb = build_pyramid(tA, 3), build_pyramid(tB, 3)
@@ -295,8 +323,6 @@ def test_batch_equals_separate_calls_and_modes(cam0, device):
         # the padded levels (win 21 -> pad 22) are built once for the whole batch and stay on the
         # pyramids: the next image's are reused when it becomes the previous one
         assert (0, 22, 22, pts.dtype) in qb._padded and qb._padded[(0, 22, 22, pts.dtype)].shape[0] == 3
-    finally:
-        lk_mod._MAX_STREAMS = old
     # pyramids built once (as the tracker keeps them) and the sync-free fixed-iteration mode
     pa, pb = build_pyramid(tA, 3), build_pyramid(tB, 3, with_gradients=False)
     o2, s2 = track_lk(pa, pb, pts, valid, early_exit=False)

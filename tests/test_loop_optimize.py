@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from torch_frontend.errors import DataError
+from torch_frontend.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
 from torch_frontend.loop import optimize as opt
-from torch_frontend.loop.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
 
 HAS_SCIPY = importlib.util.find_spec("scipy") is not None
 F64 = torch.float64

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from torch_frontend.errors import DataError
-from torch_frontend.loop.geometry import rodrigues
+from torch_frontend.geometry import rodrigues
 from torch_frontend.loop.pnp import PnPResult, p3p, pnp_ransac, refine_pnp
 
 THR = 10.0 / 460.0

@@ -1,7 +1,7 @@
 """The pose graph end to end on a rendered sequence (issue 11 acceptance).
 
 A camera flies a closed loop twice inside a room textured with real photos
-(``loop.synthetic.render_loop_sequence``); the VIO poses drift (yaw + xyz random walk), the
+(``testing.synthetic.render_loop_sequence``); the VIO poses drift (yaw + xyz random walk), the
 keyframes carry exact 3-D points in their drifted VIO world (as VINS's estimator would give them).
 The pose graph must accept loops at the revisits and nowhere else, and halve the ATE.
 """
@@ -15,11 +15,11 @@ import pytest
 import torch
 
 from torch_frontend.errors import DataError
-from torch_frontend.io.trajectory import Trajectory, ate_rmse
-from torch_frontend.loop.geometry import R_to_quat, yaw_to_R
+from torch_frontend.geometry import R_to_quat, yaw_to_R
 from torch_frontend.loop.pose_graph import PoseGraph, _brief_to_text, _text_to_brief
-from torch_frontend.loop.synthetic import make_keyframes, render_loop_sequence
 from torch_frontend.loop.vocabulary import Vocabulary
+from torch_frontend.testing.synthetic import make_keyframes, render_loop_sequence
+from torch_frontend.trajectory import Trajectory, ate_rmse
 
 KF_PER_LAP = 56  # > 50: VINS only queries keyframes more than 50 indices older
 

@@ -1,4 +1,4 @@
-"""``loop.run.run_loop`` (issue 12): several sequences sharing one map vs separate graphs, the
+"""``pipelines.loop.run_loop`` (issue 12): several sequences sharing one map vs separate graphs, the
 keyframe rule, pose coverage, the extrinsic from configs and vocabulary files of every format.
 The single-sequence demo end to end is in ``test_cli_loop.py``."""
 
@@ -13,11 +13,14 @@ import torch
 
 from tests.conftest import REPO, SAMPLE
 from torch_frontend.errors import DataError
-from torch_frontend.io.trajectory import Trajectory, read_trajectory
-from torch_frontend.loop import run as loop_run
-from torch_frontend.loop.geometry import R_to_quat, ypr_to_R
+from torch_frontend.geometry import R_to_quat, ypr_to_R
 from torch_frontend.loop.report import STREAM_FILES
 from torch_frontend.loop.vocabulary import Vocabulary
+from torch_frontend.pipelines import loop as loop_run
+from torch_frontend.pipelines.inputs import ArraySequence
+from torch_frontend.pipelines.loop_stages import KeyframeLog, covered_mask
+from torch_frontend.pipelines.vocabulary import load_vocabulary
+from torch_frontend.trajectory import Trajectory, read_trajectory
 
 # two laps of 56 rendered keyframes, no frame in between (fast); each lap is one sequence
 TWO_SEQ = dict(keyframes_per_lap=56, frames_per_keyframe=1)
@@ -33,7 +36,7 @@ def test_shared_map_merges_two_sequences(two_laps, tmp_path):
     """Lap 1 and lap 2 as two streams in one pose graph: lap 2's keyframes close loops with lap 1
     (VINS's multi-sequence merge), the map's ATE with one alignment for both drops."""
     out = tmp_path / "shared"
-    run = loop_run.demo_loop(out, sequence=two_laps, two_sequences=True, progress=False)
+    run = loop_run.demo_loop(out, loop_run.demo_options(progress=False), sequence=two_laps, two_sequences=True)
     s = run.summary
     assert s["streams"] == 2 and s["graphs"] == 1 and s["shared_map"]
     assert [p["sequence"] for p in s["per_stream"]] == [1, 2]
@@ -65,8 +68,8 @@ def test_separate_graphs_keep_sequences_apart(two_laps, tmp_path):
     """The same two streams with one graph each (the start of each lap, to stay quick): no loop
     across streams, each stream alone in its graph, one saved graph per stream."""
     out = tmp_path / "separate"
-    run = loop_run.demo_loop(out, sequence=two_laps, two_sequences=True, separate_graphs=True, progress=False,
-                             run_kwargs={"max_frames": 16})
+    run = loop_run.demo_loop(out, loop_run.demo_options(separate_graphs=True, progress=False, max_frames=16),
+                             sequence=two_laps, two_sequences=True)
     s = run.summary
     assert s["graphs"] == 2 and not s["shared_map"] and "ate_joint_before" not in s
     assert [len(g) for g in run.graphs] == [p["keyframes"] for p in s["per_stream"]]
@@ -98,30 +101,30 @@ def _feed(log, traj, times):
 
 def test_keyframe_rule():
     traj = _line_trajectory()  # 1 m/s, frames at 10 Hz
-    log = loop_run._StreamLog("s", traj, "p", 0.5, 0.25, 90.0, None)
+    log = KeyframeLog("s", traj, "p", 0.5, 0.25, 90.0, None)
     _feed(log, traj, traj.time.tolist())
     # first frame, then each frame more than 0.25 m from the last keyframe: every 3rd (0.3 m)
     assert log.kf_frames == list(range(0, 50, 3))
     spin = _line_trajectory(speed=0.0, yaw_rate=40.0)  # turning in place, 4 deg per frame
-    log = loop_run._StreamLog("s", spin, "p", 0.5, 0.25, 10.0, None)
+    log = KeyframeLog("s", spin, "p", 0.5, 0.25, 10.0, None)
     _feed(log, spin, spin.time.tolist())
     assert log.kf_frames == list(range(0, 50, 3))  # > 10 deg: every 3rd frame (12 deg)
-    log = loop_run._StreamLog("s", traj, "p", 0.5, 0.25, 10.0, 7)
+    log = KeyframeLog("s", traj, "p", 0.5, 0.25, 10.0, 7)
     _feed(log, traj, traj.time.tolist())
     assert log.kf_frames == list(range(0, 50, 7))
     # frames outside the poses' span (or without features) are tracked but never keyframes
-    log = loop_run._StreamLog("s", traj, "p", 0.5, 0.25, 90.0, 1)
+    log = KeyframeLog("s", traj, "p", 0.5, 0.25, 90.0, 1)
     _feed(log, traj, [4.0, 4.5, 5.0, 5.05, 99.0])
     assert log.kf_frames == [2, 3] and log.covered == [False, False, True, True, False]
 
 
 def test_pose_coverage_rule():
     traj = _line_trajectory(n=5, dt=0.1)  # 5.0 .. 5.4 s
-    cov = loop_run._covered(traj, np.array([4.99, 5.0, 5.05, 5.4, 5.41]), max_gap=0.5)
+    cov = covered_mask(traj, np.array([4.99, 5.0, 5.05, 5.4, 5.41]), max_gap=0.5)
     assert cov.tolist() == [False, True, True, True, False]
     gap = Trajectory(torch.tensor([1.0, 2.0, 2.1]), torch.zeros(3, 3, dtype=torch.float64),
                      torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=torch.float64))
-    assert loop_run._covered(gap, np.array([1.0, 1.5, 2.05]), max_gap=0.5).tolist() == [True, False, True]
+    assert covered_mask(gap, np.array([1.0, 1.5, 2.05]), max_gap=0.5).tolist() == [True, False, True]
 
 
 def test_extrinsic_from_configs():
@@ -147,23 +150,24 @@ def test_load_vocabulary_formats(tmp_path):
     voc.save(tmp_path / "v.npz")
     voc.save_vins_bin(tmp_path / "v.bin")
     for name in ("v.npz", "v.bin"):
-        v = loop_run.load_vocabulary(tmp_path / name)
+        v = load_vocabulary(tmp_path / name)
         assert v.num_words == voc.num_words and v.k == 3 and v.L == 2
     with pytest.raises(DataError, match="not found"):
-        loop_run.load_vocabulary(tmp_path / "missing.bin")
+        load_vocabulary(tmp_path / "missing.bin")
     (tmp_path / "bad.bin").write_bytes(b"\x00" * 100)
     with pytest.raises(DataError, match="not a vocabulary"):
-        loop_run.load_vocabulary(tmp_path / "bad.bin")
+        load_vocabulary(tmp_path / "bad.bin")
 
 
 def test_array_sequence_and_argument_checks(tmp_path):
-    seq = loop_run.ArraySequence(np.zeros((3, 8, 8), np.uint8), [1.0, 1.5, 2.0], name="a")
+    seq = ArraySequence(np.zeros((3, 8, 8), np.uint8), [1.0, 1.5, 2.0], name="a")
     frames = list(seq)
     assert len(seq) == 3 and [f.stamp_ns for f in frames] == [1_000_000_000, 1_500_000_000, 2_000_000_000]
     traj = _line_trajectory()
+    train = loop_run.LoopOptions(train_vocabulary=True)
     with pytest.raises(ValueError, match="one poses file per input"):
-        loop_run.run_loop(None, [seq], [], tmp_path, train_vocabulary=True)
-    with pytest.raises(ValueError, match="train-vocabulary"):
+        loop_run.run_loop(None, [seq], [], tmp_path, train)
+    with pytest.raises(ValueError, match="train_vocabulary"):
         loop_run.run_loop(None, [seq], [traj], tmp_path)
-    with pytest.raises(ValueError, match="ground-truth"):
-        loop_run.run_loop(None, [seq], [traj], tmp_path, train_vocabulary=True, ground_truth=[traj, traj])
+    with pytest.raises(ValueError, match="ground_truth"):
+        loop_run.run_loop(None, [seq], [traj], tmp_path, train, ground_truth=[traj, traj])

@@ -1,4 +1,4 @@
-"""The rendered revisiting sequence (torch_frontend.loop.synthetic): exact geometry, textures that
+"""The rendered revisiting sequence (torch_frontend.testing.synthetic): exact geometry, textures that
 are what the renderer shows, VIO drift of the intended kind, revisit ground truth, and BRIEF
 matching that works at the revisits only.
 
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from torch_frontend.loop.geometry import R_to_ypr
+from torch_frontend.geometry import R_to_ypr
 from torch_frontend.loop.keyframe import match_brief
-from torch_frontend.loop.synthetic import (
+from torch_frontend.testing.synthetic import (
     default_textures,
     make_keyframes,
     make_room,
@@ -295,7 +295,7 @@ def test_bad_arguments():
 def test_room_cast_paths_agree():
     """The convex fast paths (inverse-depth argmax; one matmul per frame) equal the general ray /
     rectangle test for rays from inside the room."""
-    from torch_frontend.loop.synthetic import Room
+    from torch_frontend.testing.synthetic import Room
 
     room = make_room(textures=[np.full((4, 4), 10 * k, np.uint8) for k in range(6)])
     general = Room(room.origin, room.axis_u, room.axis_v, room.size, room.textures, convex=False)

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from torch_frontend.loop.geometry import quat_to_R, ypr_to_R
+from torch_frontend.geometry import quat_to_R, ypr_to_R
 from torch_frontend.loop.triangulate import DEFAULT_MAX_REPROJ, camera_poses, triangulate_points
 
 

@@ -1,4 +1,4 @@
-"""Tests of the numpy + cv2 VINS front-end oracle (``benchmarks/vins_oracle.py``).
+"""Tests of the numpy + cv2 VINS front-end oracle (``torch_frontend.testing.oracle``).
 
 The oracle is the reference the torch tracker is compared with, so these tests pin the
 behaviour of spec §3 (Mono node timing + readImage), §4 (camodocal lift) and §6 (Fusion tracker)
@@ -8,17 +8,15 @@ on synthetic clocks, analytic camera round trips and the repo's EuRoC sample fra
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from .conftest import REPO, load_gray, sample_frames, shared_data_or_skip
+from torch_frontend.testing import oracle as vo
 
-sys.path.insert(0, str(REPO / "benchmarks"))
-import vins_oracle as vo  # noqa: E402
+from .conftest import load_gray, sample_frames, shared_data_or_skip
 
 EUROC_CAM = {
     "model_type": "PINHOLE",
@@ -129,8 +127,8 @@ def test_duplicate_stamp_after_reset_is_not_published():
 
 
 def test_duplicate_stamp_can_publish_when_not_after_reset():
-    # Not covered by the spec's "duplicate => inf" remark: a 5 Hz camera publishes without a
-    # reset (r=5), so a duplicate then has a finite r = 2/0.2 = 10 -> published (and resets).
+    # spec §3.2 step 4: a 5 Hz camera publishes without a reset (r=5), so a duplicate then has a
+    # finite r = 2/0.2 = 10 -> published (and resets); "duplicate => inf" holds only right after a reset.
     pubs, *_ = _pub_pattern([0.0, 0.2, 0.2, 0.4])
     assert pubs == [1, 2, 3]
 

@@ -53,3 +53,48 @@ def test_public_names_resolve():
         assert getattr(tf, name) is not None, name
     for name in loop.__all__:
         assert getattr(loop, name) is not None, name
+
+
+def _import_everything():
+    """Import every submodule of the package (as a long session would) and run a tracker step."""
+    import importlib
+    import pkgutil
+
+    import torch
+
+    import torch_frontend as tf
+
+    for m in pkgutil.walk_packages(tf.__path__, "torch_frontend."):
+        importlib.import_module(m.name)
+    tr = tf.FeatureTracker(tf.load_config(REPO / "configs" / "euroc.yaml"))
+    tr.track(torch.zeros(1, 1, 480, 752, dtype=torch.uint8), [0.0])
+    tr.track(torch.zeros(1, 1, 480, 752, dtype=torch.uint8), [0.05])
+
+
+def test_public_names_stay_the_documented_objects_after_a_run():
+    """``tf.clahe(images)`` must keep working after the tracker (or anything) imported the module
+    that defines it: a package attribute is overwritten by a submodule of the same name, so no
+    lazily exported name may equal a submodule's name, and every public name is its module's object."""
+    import importlib
+    import inspect
+
+    import torch
+
+    import torch_frontend as tf
+
+    _import_everything()
+    for pkg_name in ("torch_frontend", "torch_frontend.loop", "torch_frontend.io", "torch_frontend.testing",
+                     "torch_frontend.pipelines"):
+        try:
+            pkg = importlib.import_module(pkg_name)
+        except ModuleNotFoundError:
+            continue
+        exports = getattr(pkg, "_EXPORTS", {})
+        for name in pkg.__all__:
+            obj = getattr(pkg, name)
+            assert not inspect.ismodule(obj), f"{pkg_name}.{name} is a module, not the documented object"
+            if name in exports:
+                src = importlib.import_module(f".{exports[name]}", pkg_name)
+                assert obj is getattr(src, name), f"{pkg_name}.{name} is not {src.__name__}.{name}"
+    eq = tf.clahe(torch.full((1, 1, 16, 16), 7, dtype=torch.uint8))
+    assert eq.shape == (1, 1, 16, 16) and eq.dtype == torch.uint8

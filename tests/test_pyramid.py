@@ -109,12 +109,16 @@ def test_batch_and_layouts(frame):
 def test_grouped_build_and_padded_cache(frame, monkeypatch):
     """Large CPU batches are built in groups of streams: same levels and gradients as one pass.
     Padded levels are cached per (level, pad, dtype) and come along with select()."""
-    import torch_frontend.pyramid as pyramid_mod
+    import dataclasses
+
+    from torch_frontend import _tuning
 
     imgs = torch.from_numpy(np.stack([frame[:100, :120], frame[50:150, 100:220], frame[200:300, 300:420]]))
     whole = build_pyramid(imgs, max_level=2)
-    monkeypatch.setattr(pyramid_mod, "_BATCH_PIXELS", 100)
-    monkeypatch.setattr(pyramid_mod, "_BLOCK_PIXELS", 100 * 120)  # one stream per group
+    assert _tuning.CPU.pyramid_streams(3, 100, 120) is None  # small batch: one pass on the CPU, too
+    groups = dataclasses.replace(_tuning.CPU, pyramid_batch_pixels=100, pyramid_group_pixels=100 * 120)
+    assert groups.pyramid_streams(3, 100, 120) == 1  # one stream per group
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", groups)
     grouped = build_pyramid(imgs, max_level=2)
     for l in range(3):
         assert torch.equal(grouped.levels[l], whole.levels[l])

@@ -8,7 +8,6 @@ published; against ground truth, median reprojection error ≤ 0.1 px.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from pathlib import Path
 
 import cv2
@@ -17,12 +16,11 @@ import pytest
 import torch
 
 import torch_frontend as tf
+from torch_frontend.testing import oracle as vins_oracle
+from torch_frontend.testing.flight import synthetic_flight
 from torch_frontend.tracker import FeatureTracker
 
 from .conftest import REPO, TEST_DATA, load_gray, sample_frames
-
-sys.path.insert(0, str(REPO / "benchmarks"))
-import vins_oracle  # noqa: E402
 
 CFG_PATH = REPO / "configs" / "euroc.yaml"
 
@@ -42,34 +40,6 @@ def oracle_cfg(cfg: tf.TrackerConfig) -> dict:
 def _euroc_sequence(n=None):
     files = sample_frames("cam0")[:n]
     return [(_stamp(f), load_gray(f)) for f in files]
-
-
-def synthetic_flight(n_frames=16, size=(400, 640), seed=0):
-    """A camera flying over a real photo (a plane): frames and the exact homographies.
-
-    The texture is a real EuRoC frame; frame k is the texture seen through H_k (texture -> frame),
-    rendered 4× supersampled and area-averaged so that interpolation blur does not bias sub-pixel
-    positions. Motion: ~2-3 px/frame translation, slow rotation and zoom.
-    """
-    tex = load_gray(sample_frames("cam0")[0]).astype(np.float32)
-    H, W = size
-    frames, Hs = [], []
-    s = 4
-    S = np.diag([s, s, 1.0])
-    for k in range(n_frames):
-        a = 0.002 * k
-        sc = 1.0 + 0.0015 * k
-        tx, ty = 40 + 2.5 * k, 30 + 1.5 * k
-        c, si = np.cos(a) * sc, np.sin(a) * sc
-        # frame point = A @ texture point (texture -> frame), mild perspective
-        A = np.array([[c, -si, -tx], [si, c, -ty], [2e-6 * k, -1e-6 * k, 1.0]])
-        big = cv2.warpPerspective(tex, S @ A, (W * s, H * s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-        img = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
-        # the supersampled pixel grid: frame pixel centre x maps to big pixel centre s*x + (s-1)/2
-        C = np.array([[1.0 / s, 0, (1.0 / s - 1) / 2], [0, 1.0 / s, (1.0 / s - 1) / 2], [0, 0, 1]])
-        frames.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
-        Hs.append(C @ S @ A)
-    return frames, Hs
 
 
 def _run_torch(cfg, seq, mode="mono"):
@@ -382,10 +352,10 @@ def test_remove_and_prediction():
     f0 = tr.track(torch.from_numpy(seq[0][1])[None, None], [seq[0][0]])
     ids = f0.ids[0][f0.valid[0]]
     tr.remove(0, ids[:5].tolist())
-    assert not bool(torch.isin(ids[:5], tr.state.ids[0][tr.state.valid[0]]).any())
+    assert not bool(torch.isin(ids[:5], tr.state.features.ids[0][tr.state.features.valid[0]]).any())
     # predict the current positions (the scene is static): tracking must still work
-    keep = tr.state.valid
-    tr.set_prediction(tr.state.ids, tr.state.pts, keep)
+    keep = tr.state.features.valid
+    tr.set_prediction(tr.state.features.ids, tr.state.features.pts, keep)
     f1 = tr.track(torch.from_numpy(seq[1][1])[None, None], [seq[1][0]])
     surv = torch.isin(ids[5:], f1.ids[0][f1.valid[0]]).float().mean()
     assert surv > 0.9
@@ -460,7 +430,7 @@ def test_prediction_survives_a_later_remove():
     tr = FeatureTracker(cfg, mode="fusion")
     f0 = tr.track(torch.from_numpy(seq[0][1])[None, None], [seq[0][0]])
     ids0, uv0 = f0.ids[0][f0.valid[0]], f0.uv[0][f0.valid[0]]
-    tr.set_prediction(tr.state.ids, tr.state.pts, tr.state.valid)
+    tr.set_prediction(tr.state.features.ids, tr.state.features.pts, tr.state.features.valid)
     tr.remove(0, ids0[:10].tolist())
     f1 = tr.track(torch.from_numpy(seq[1][1])[None, None], [seq[1][0]])
     ids1, uv1 = f1.ids[0][f1.valid[0]], f1.uv[0][f1.valid[0]]

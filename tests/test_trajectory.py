@@ -10,7 +10,8 @@ import torch
 
 from tests.conftest import shared_data_or_skip
 from torch_frontend.errors import DataError
-from torch_frontend.io.trajectory import (
+from torch_frontend.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
+from torch_frontend.trajectory import (
     Trajectory,
     add_drift,
     align_se3,
@@ -22,7 +23,6 @@ from torch_frontend.io.trajectory import (
     write_tum,
     write_vins_csv,
 )
-from torch_frontend.loop.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
 
 T0 = 1403715273.262142976  # a EuRoC time: float64 seconds of this size keep ~0.24 us
 

@@ -27,7 +27,7 @@ _EXPORTS = {
     "KannalaBrandtCamera": "camera",
     "ScaramuzzaCamera": "camera",
     # image stage
-    "clahe": "clahe",
+    "clahe": "equalize",
     "build_pyramid": "pyramid",
     "pyr_down": "pyramid",
     "scharr_gradients": "pyramid",

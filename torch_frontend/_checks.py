@@ -1,8 +1,11 @@
 """Shared input checks and small tensor helpers used by every kernel.
 
-Kernels call these at their public boundary so that a wrong shape or type fails early with a
-message that names the argument, the expected shape and the given one (a ``ValueError``), rather
-than deep inside a ``grid_sample`` or ``conv2d``.
+Kernels call the checks at their public boundary (the checked door over each ``_impl``) so that a
+wrong shape or type fails early with a message that names the argument, the expected shape and the
+given one (a ``ValueError``), rather than deep inside a ``conv2d`` or an ``index_select``. The
+``_impl`` layer calls none of them: a pipeline validates its inputs once and calls it directly.
+The slot helpers at the end (:func:`valid_first_order`, :func:`gather_slots`) are tensor code, not
+checks.
 """
 
 from __future__ import annotations
@@ -71,15 +74,11 @@ def as_image_batch(img: torch.Tensor, name: str = "img") -> torch.Tensor:
     return img
 
 
-def as_float_image(img: torch.Tensor, name: str = "img", dtype: Optional[torch.dtype] = None) -> torch.Tensor:
-    """``as_image_batch`` then convert to floating point (grey levels 0..255 are kept, not rescaled).
-
-    ``dtype`` defaults to the image's own float dtype, or float32 for uint8 input.
-    """
+def as_float_image(img: torch.Tensor, name: str = "img") -> torch.Tensor:
+    """``as_image_batch`` then convert to floating point (grey levels 0..255 are kept, not rescaled):
+    a float image keeps its dtype, uint8 becomes float32."""
     img = as_image_batch(img, name)
-    if dtype is None:
-        dtype = img.dtype if img.is_floating_point() else torch.float32
-    return img.to(dtype)
+    return img if img.is_floating_point() else img.to(torch.float32)
 
 
 def check_points(pts: torch.Tensor, name: str = "pts") -> None:
@@ -95,15 +94,6 @@ def default_valid(pts: torch.Tensor, valid: Optional[torch.Tensor], name: str = 
         return torch.ones(pts.shape[:-1], dtype=torch.bool, device=pts.device)
     check_shape(valid, tuple(pts.shape[:-1]), name)
     return valid.to(torch.bool)
-
-
-def per_stream(value: Union[int, float, torch.Tensor], batch: int, device, dtype, name: str) -> torch.Tensor:
-    """Broadcast a scalar or a ``(B,)`` tensor to a ``(B,)`` tensor of ``dtype``."""
-    t = torch.as_tensor(value, device=device, dtype=dtype)
-    if t.dim() == 0:
-        return t.expand(batch).clone()
-    check_shape(t, (batch,), name)
-    return t
 
 
 def valid_first_order(valid: torch.Tensor) -> torch.Tensor:

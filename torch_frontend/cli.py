@@ -1,33 +1,37 @@
-"""The ``torch-frontend`` command line: ``track``, ``demo`` and ``vocabulary train``.
+"""The ``torch-frontend`` command line: ``track``, ``demo``, ``loop`` and ``vocabulary train``.
+
+This module does argparse and printing only: each command builds the options of a pipeline from
+its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
+exit codes.
 
 ``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR)... --out DIR`` runs the
 VINS front end on one or more sequences at once (B streams in one batched tracker) and writes
 ``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
-(see ``torch_frontend.outputs``). ``torch-frontend demo`` does the same on the sample EuRoC frames
-shipped with the package.
+(``pipelines.track.run_track``; see ``torch_frontend.outputs``). ``torch-frontend demo`` does the
+same on the sample EuRoC frames shipped with the package.
 
 ``torch-frontend loop [CONFIG] (--euroc DIR | --images DIR | --bag FILE)... --poses FILE... --out DIR
 (--vocabulary FILE | --train-vocabulary)`` runs loop closure (VINS's pose graph) on images plus
 their VIO poses and writes the loop-corrected trajectory, the loops, the pose graph, a summary and
-plots (``torch_frontend.loop.run``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
-does the same on a rendered sequence that revisits places.
+plots (``pipelines.loop.run_loop``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
+does the same on a rendered sequence that revisits places (``pipelines.loop.demo_loop``).
+``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``.
 
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
-wrong size, an empty sequence) print one line ``torch-frontend: error: ...`` on stderr and exit
-with a non-zero code: 2 for usage and config errors, 1 for data errors, 130 when interrupted.
+wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
+stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
+130 when interrupted. A pipeline's ``OptionError`` names its option; the line names the flag.
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
-import time
 from pathlib import Path
 from typing import Any, Dict, List, Sequence, Tuple
 
-from .errors import ConfigError
-from .io.frames import DataError
+from .errors import ConfigError, DataError
+from .pipelines.common import OptionError
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SAMPLE_DIR = PACKAGE_DIR / "data" / "euroc_mini"
@@ -35,6 +39,23 @@ SAMPLE_DIR = PACKAGE_DIR / "data" / "euroc_mini"
 EXIT_DATA = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+
+# option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
+_INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
+                "camera": "--camera"}
+_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode"}
+_DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
+_LOOP_FLAGS = {
+    **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
+    "train_vocabulary": "--train-vocabulary", "vocabulary_k": "--train-k", "vocabulary_L": "--train-L",
+    "load_graph": "--load-graph", "separate_graphs": "--separate-graphs", "mode": "--pose-graph",
+    "tracker_mode": "--tracker-mode", "keyframe_distance": "--keyframe-distance",
+    "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
+    "pnp_backend": "--pnp",
+}
+_VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
+                     "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
+                     "device": "--device"}
 
 
 def default_config_path() -> Path:
@@ -50,141 +71,11 @@ class _UsageError(Exception):
 
 
 # ----------------------------------------------------------------------------------------------
-# the run
-
-
-def _resolve_device(device: str):
-    import torch
-
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise _UsageError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
-    try:
-        return torch.device(device)
-    except RuntimeError:
-        raise _UsageError(f"--device: expected cpu or cuda, got {device!r}") from None
-
-
-def resolve_config(config: Path | None, sources: Sequence[Tuple[str, str]], camera: str = "cam0"):
-    """The ``TrackerConfig`` of a run: ``config`` if given, else the ``sensor.yaml`` of the first
-    ``--euroc`` input (VINS's EuRoC front-end settings)."""
-    from .config import load_config
-
-    if config is not None:
-        cfg = load_config(config)
-    else:
-        euroc = [p for k, p in sources if k == "euroc"]
-        if not euroc:
-            raise _UsageError("no CONFIG given: a VINS config file is needed unless an --euroc folder "
-                              "provides sensor.yaml")
-        from .io.euroc import euroc_config
-
-        cfg = euroc_config(euroc[0], camera)
-    if cfg.camera is None:
-        raise ConfigError("has no camera (an estimator-only config?); the tracker needs one", cfg.path)
-    return cfg
-
-
-def run_track(
-    config,
-    sources: Sequence[Tuple[str, str]],
-    out,
-    *,
-    device: str = "cpu",
-    mode: str = "mono",
-    max_frames: int | None = None,
-    fps: float | None = None,
-    topic: str | None = None,
-    camera: str = "cam0",
-    skip_bad_frames: bool = False,
-    write_tracks: bool = True,
-    progress: bool | None = None,
-) -> Dict[str, Any]:
-    """Track ``sources`` (``[(kind, path)]``, kind in ``euroc``, ``bag``, ``images``) as B streams
-    and write the outputs into ``out``. Returns the summary dict (also in ``summary.json``).
-
-    Args:
-        config: a ``TrackerConfig``, a config path, or None (``sensor.yaml`` of the first --euroc).
-        max_frames: at most this many steps (frames per stream).
-        progress: tqdm bar on stderr (None: only on a terminal).
-
-    Raises:
-        DataError, ConfigError: user errors; ``KeyboardInterrupt`` passes through after cleanup.
-    """
-    import torch
-
-    from .config import TrackerConfig
-    from .io import MultiStream, open_sequence
-    from .outputs import RunRecorder
-
-    if not sources:
-        raise _UsageError("no input: give at least one --euroc DIR, --bag PATH or --images DIR")
-    if max_frames is not None and max_frames < 1:
-        raise _UsageError(f"--max-frames must be >= 1, got {max_frames}")
-    if mode not in ("mono", "fusion"):
-        raise _UsageError(f"--mode: expected mono or fusion, got {mode!r}")
-    dev = _resolve_device(device)
-    cfg = config if isinstance(config, TrackerConfig) else resolve_config(
-        None if config is None else Path(config), sources, camera)
-    seqs = [
-        open_sequence(kind, path, camera=camera, fps=fps, topic=topic or cfg.image_topic or None,
-                      skip_bad=skip_bad_frames)
-        for kind, path in sources
-    ]
-    stream = MultiStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=max_frames)
-
-    from .tracker import FeatureTracker
-
-    tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=mode)
-    names = [f"{s.kind}:{s.name}" for s in seqs]
-    total = sum(len(s) if max_frames is None else min(len(s), max_frames) for s in seqs)
-    bar = None
-    if progress is not False:
-        from tqdm import tqdm
-
-        # a pty that reports a 0 x 0 size makes tqdm hide the bar: fall back to 100 x 20
-        size = shutil.get_terminal_size((100, 20))
-        bar = tqdm(total=total, unit="frame", desc="tracking", disable=None if progress is None else False,
-                   file=sys.stderr, ncols=min(120, size.columns), nrows=size.lines, leave=False)
-    steps = 0
-    tracker_seconds = 0.0
-    with RunRecorder(out, names, write_tracks=write_tracks) as rec:
-        t0 = time.perf_counter()
-        try:
-            for batch in stream:
-                t1 = time.perf_counter()
-                frame = tracker.track(batch.images.to(dev), batch.timestamps, active=batch.alive.to(dev))
-                if dev.type == "cuda":
-                    torch.cuda.synchronize(dev)
-                tracker_seconds += time.perf_counter() - t1
-                rec.add(batch, frame)
-                steps += 1
-                if bar is not None:
-                    bar.update(int(batch.alive.sum()))
-        finally:
-            if bar is not None:
-                bar.close()
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        seconds = time.perf_counter() - t0
-        summary = rec.summary(
-            seconds,
-            stream.skipped,
-            extra={
-                "steps": steps,
-                "tracker_seconds": round(tracker_seconds, 6),
-                "config": str(cfg.path),
-                "mode": mode,
-                "device": str(dev),
-                "inputs": [{"kind": k, "path": str(p), "frames_listed": len(s)} for (k, p), s in zip(sources, seqs)],
-                "out": str(Path(out)),
-            },
-        )
-        rec.write(summary)
-    return summary
+# printing
 
 
 def format_summary(s: Dict[str, Any]) -> str:
-    """The few lines ``track``/``demo`` print."""
+    """The few lines ``track``/``demo`` print (``s``: the summary of ``run_track``)."""
     lines = [
         f"streams       {s['streams']}   frames {s['frames']}   steps {s.get('steps', '?')}   "
         f"published frames {s['published']}",
@@ -203,50 +94,81 @@ def format_summary(s: Dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def format_loop_summary(s: Dict[str, Any]) -> str:
+    """The few lines ``loop`` / ``demo --loop`` print (``s``: the summary of ``run_loop``)."""
+    from .pipelines.loop import MIN_POINTS_TO_QUERY
+
+    rej = ", ".join(f"{k} {v}" for k, v in s.get("rejected_by_reason", {}).items()) or "none"
+    lines = [
+        f"streams       {s['streams']}   graphs {s['graphs']} ({'shared map' if s['shared_map'] else 'separate'})"
+        f"   mode {s['mode']}",
+        f"keyframes     {s['keyframes']}   ({s['keyframes_not_querying']} with <= {MIN_POINTS_TO_QUERY} points "
+        f"did not query)",
+        f"loops         {s['loops_accepted']} accepted, {s['loops_rejected']} rejected ({rej})",
+    ]
+    if s.get("ate_before") is not None:
+        lines.append(f"ATE           {s['ate_before']:.3f} m -> {s['ate_after']:.3f} m (SE(3)-aligned, keyframes"
+                     f"{', per stream' if s['streams'] > 1 else ''})")
+    if s.get("ate_joint_before") is not None:
+        lines.append(f"ATE map       {s['ate_joint_before']:.3f} m -> {s['ate_joint_after']:.3f} m (one alignment "
+                     f"for all streams)")
+    t = s.get("times", {})
+    lines.append("times         " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
+    if "out" in s:
+        lines.append(f"outputs       {s['out']}/ (vins_result_loop.csv, trajectory_loop.tum, trajectory_vio.tum, "
+                     f"loops.csv, pose_graph/, summary.json, trajectory_top.png, place_recognition_scores.png)")
+    return "\n".join(lines)
+
+
 # ----------------------------------------------------------------------------------------------
 # commands
 
 
+def _progress(args: argparse.Namespace):
+    return False if args.no_progress else None
+
+
+def _check_inputs(config, sources: Sequence[Tuple[str, str]], kinds: str) -> None:
+    """The usage errors of ``track``/``loop`` inputs, in the command line's words."""
+    if not sources:
+        raise _UsageError(f"no input: give at least one {kinds}")
+    if config is None and not any(k == "euroc" for k, _ in sources):
+        raise _UsageError("no CONFIG given: a VINS config file is needed unless an --euroc folder "
+                          "provides sensor.yaml")
+
+
+def _input_options(args: argparse.Namespace) -> Dict[str, Any]:
+    """``InputOptions`` fields from the reader flags of ``track``/``loop``."""
+    return dict(device=args.device, max_frames=args.max_frames, camera=args.camera, fps=args.fps,
+                topic=args.topic, skip_bad_frames=args.skip_bad_frames, progress=_progress(args))
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
-    summary = run_track(
-        args.config, args.sources or [], args.out, device=args.device, mode=args.mode,
-        max_frames=args.max_frames, fps=args.fps, topic=args.topic, camera=args.camera,
-        skip_bad_frames=args.skip_bad_frames, write_tracks=not args.no_tracks,
-        progress=False if args.no_progress else None,
-    )
-    print(format_summary(summary))
+    from .pipelines.track import TrackOptions, run_track
+
+    sources = args.sources or []
+    _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
+    opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks)
+    print(format_summary(run_track(args.config, sources, args.out, opt)))
     return 0
 
 
 def _cmd_loop(args: argparse.Namespace) -> int:
-    from .loop.run import format_loop_summary, run_loop
+    from .pipelines.loop import LoopOptions, run_loop
 
     sources = args.sources or []
-    poses = args.poses or []
-    gts = args.ground_truth
-    if not sources:
-        raise _UsageError("no input: give at least one --euroc DIR, --images DIR or --bag FILE")
-    if len(poses) != len(sources):
-        raise _UsageError(f"--poses: expected one poses file per input, in the same order ({len(sources)} "
-                          f"input{'s' if len(sources) != 1 else ''}), got {len(poses)}")
-    if gts is not None and len(gts) != len(sources):
-        raise _UsageError(f"--ground-truth: expected one file per input, in the same order ({len(sources)} "
-                          f"input{'s' if len(sources) != 1 else ''}), got {len(gts)}")
+    _check_inputs(args.config, sources, "--euroc DIR, --images DIR or --bag FILE")
     if args.vocabulary is None and not args.train_vocabulary:
         raise _UsageError("no vocabulary: give --vocabulary FILE (VINS's brief_k10L6.bin, or a .npz from "
                           "'torch-frontend vocabulary train') or --train-vocabulary")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise _UsageError(f"--max-frames must be >= 1, got {args.max_frames}")
-    dev = _resolve_device(args.device)
-    run = run_loop(
-        args.config, sources, poses, args.out, vocabulary=args.vocabulary, train_vocabulary=args.train_vocabulary,
-        vocabulary_k=args.train_k, vocabulary_L=args.train_L, load_graph=args.load_graph, ground_truth=gts,
-        separate_graphs=args.separate_graphs, mode=args.pose_graph, device=dev, tracker_mode=args.tracker_mode,
+    opt = LoopOptions(
+        **_input_options(args), vocabulary=args.vocabulary, train_vocabulary=args.train_vocabulary,
+        vocabulary_k=args.train_k, vocabulary_L=args.train_L, load_graph=args.load_graph,
+        separate_graphs=args.separate_graphs, mode=args.pose_graph, tracker_mode=args.tracker_mode,
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
-        max_frames=args.max_frames, fps=args.fps, topic=args.topic, camera=args.camera,
-        skip_bad_frames=args.skip_bad_frames, progress=False if args.no_progress else None,
     )
+    run = run_loop(args.config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
     print(format_loop_summary(run.summary))
     return 0
 
@@ -254,7 +176,7 @@ def _cmd_loop(args: argparse.Namespace) -> int:
 def _cmd_demo_loop(args: argparse.Namespace) -> int:
     import torch
 
-    from .loop.run import DEMO_RENDER, demo_loop, format_loop_summary
+    from .pipelines.loop import DEMO_RENDER, demo_loop, demo_options
 
     # One intra-op thread: the demo's tensors are small (320x240 images, ~100 points), so extra
     # threads only add synchronisation, and on a busy machine each of the tracker's many small ops
@@ -264,15 +186,16 @@ def _cmd_demo_loop(args: argparse.Namespace) -> int:
     out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
     print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
           f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
-    run = demo_loop(out, two_sequences=args.two_sequences, separate_graphs=args.separate_graphs,
-                    device=str(_resolve_device(args.device)), progress=False if args.no_progress else None,
-                    run_kwargs={"tracker_mode": args.mode})
+    opt = demo_options(separate_graphs=args.separate_graphs, device=args.device, progress=_progress(args),
+                       tracker_mode=args.mode, max_frames=args.max_frames)
+    run = demo_loop(out, opt, two_sequences=args.two_sequences)
     print(format_loop_summary(run.summary))
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .config import load_config
+    from .pipelines.track import TrackOptions, run_track
 
     if args.loop:
         return _cmd_demo_loop(args)
@@ -281,145 +204,28 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = load_config(args.config or default_config_path())
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
-    summary = run_track(
-        cfg, [("euroc", str(SAMPLE_DIR))], args.out, device=args.device, mode=args.mode,
-        max_frames=args.max_frames, write_tracks=not args.no_tracks,
-        progress=False if args.no_progress else None,
-    )
-    print(format_summary(summary))
+    opt = TrackOptions(device=args.device, mode=args.mode, max_frames=args.max_frames,
+                       write_tracks=not args.no_tracks, progress=_progress(args))
+    print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
     return 0
-
-
-def _vocabulary_images(inputs: Sequence[str]) -> List[Path]:
-    """The image files of ``vocabulary train``: files as given, folders' images sorted by name."""
-    from .io.frames import IMAGE_SUFFIXES
-
-    files: List[Path] = []
-    for raw in inputs:
-        p = Path(raw)
-        if p.is_dir():
-            found = sorted(f for f in p.iterdir()
-                           if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith("."))
-            if not found:
-                raise DataError(f"{p}: no images in folder (looked for {'/'.join(x[1:] for x in IMAGE_SUFFIXES)})")
-            files += found
-        elif p.is_file():
-            files.append(p)
-        else:
-            raise DataError(f"{p}: no such image file or folder")
-    return files
-
-
-def run_vocabulary_train(
-    images: Sequence[str],
-    out,
-    *,
-    k: int = 10,
-    L: int = 6,
-    fast_threshold: int = 20,
-    max_images: int | None = None,
-    max_keypoints: int | None = None,
-    seed: int = 0,
-    device: str = "cpu",
-    progress: bool | None = None,
-    chunk: int = 8,
-) -> Dict[str, Any]:
-    """Train a BRIEF vocabulary (``loop.Vocabulary``) on FAST + BRIEF descriptors of ``images``
-    (files and/or folders) and save it to ``out`` (``.bin``: VINS's binary layout, else the
-    package's ``.npz`` format), atomically. Returns a summary dict.
-
-    Images of one size are described in chunks of ``chunk`` through ``loop.fast`` / ``loop.brief``;
-    ``max_images`` keeps that many evenly spaced images of the sorted list; ``max_keypoints`` keeps
-    the strongest FAST corners per image (default: all, as VINS).
-    """
-    import numpy as np
-    import torch
-
-    from .io.frames import read_image
-    from .loop import Vocabulary, brief, fast
-
-    if k < 2:
-        raise _UsageError(f"--k must be >= 2, got {k}")
-    if L < 1:
-        raise _UsageError(f"--L must be >= 1, got {L}")
-    out = Path(out)
-    if out.is_dir():
-        raise _UsageError(f"--out {out}: is a folder, expected a vocabulary file name")
-    if not out.parent.is_dir():
-        raise _UsageError(f"--out {out}: folder {out.parent} does not exist")
-    dev = _resolve_device(device)
-    files = _vocabulary_images(images)
-    if max_images is not None and max_images < len(files):
-        files = [files[int(i)] for i in np.linspace(0, len(files) - 1, max_images).round().astype(int)]
-
-    bar = None
-    if progress is not False:
-        from tqdm import tqdm
-
-        size = shutil.get_terminal_size((100, 20))
-        bar = tqdm(total=len(files), unit="image", desc="describing", disable=None if progress is None else False,
-                   file=sys.stderr, ncols=min(120, size.columns), nrows=size.lines, leave=False)
-    t0 = time.perf_counter()
-    descs: List[torch.Tensor] = []  # per image (K_i, 4) int64, valid descriptors only
-
-    def describe(batch: List[np.ndarray]) -> None:
-        img = torch.from_numpy(np.stack(batch)).to(dev)  # (b, H, W) uint8
-        pts, _, valid = fast(img, threshold=fast_threshold, max_points=max_keypoints)
-        d = brief(img, pts, valid)
-        for b in range(d.shape[0]):
-            descs.append(d[b][valid[b]])
-        if bar is not None:
-            bar.update(len(batch))
-
-    try:
-        pending: List[np.ndarray] = []
-        for f in files:
-            im = read_image(f)
-            if pending and (im.shape != pending[0].shape or len(pending) >= chunk):
-                describe(pending)
-                pending = []
-            pending.append(im)
-        if pending:
-            describe(pending)
-    finally:
-        if bar is not None:
-            bar.close()
-    n_desc = sum(int(d.shape[0]) for d in descs)
-    if n_desc == 0:
-        raise DataError(f"no FAST corners (threshold {fast_threshold}) in any of the {len(files)} images")
-    Kmax = max(int(d.shape[0]) for d in descs)
-    D = len(descs)
-    desc = torch.zeros(D, Kmax, 4, dtype=torch.int64, device=dev)
-    valid = torch.zeros(D, Kmax, dtype=torch.bool, device=dev)
-    for i, d in enumerate(descs):
-        desc[i, :d.shape[0]] = d
-        valid[i, :d.shape[0]] = True
-    t_desc = time.perf_counter() - t0
-    gen = torch.Generator(device=dev).manual_seed(int(seed))
-    # Vocabulary.train reports its levels on stdout: only alongside a visible progress bar
-    verbose = bar is not None and not bar.disable
-    voc = Vocabulary.train(desc, valid, k=k, L=L, generator=gen, progress=verbose)
-    if out.suffix.lower() == ".bin":
-        voc.save_vins_bin(out)
-    else:
-        voc.save(out)
-    seconds = time.perf_counter() - t0
-    return {"images": D, "descriptors": n_desc, "words": int(voc.num_words), "nodes": int(voc.num_nodes),
-            "k": k, "L": L, "seconds": round(seconds, 3), "describe_seconds": round(t_desc, 3),
-            "out": str(out), "device": str(dev)}
 
 
 def _cmd_vocabulary(args: argparse.Namespace) -> int:
+    from .pipelines.vocabulary import VocabularyOptions, run_vocabulary_train
+
     if args.vocabulary_command != "train":
         raise _UsageError("vocabulary: expected a subcommand: train")
-    s = run_vocabulary_train(
-        args.images, args.out, k=args.k, L=args.L, fast_threshold=args.fast_threshold,
-        max_images=args.max_images, max_keypoints=args.max_keypoints, seed=args.seed, device=args.device,
-        progress=False if args.no_progress else None,
-    )
+    opt = VocabularyOptions(k=args.k, L=args.L, fast_threshold=args.fast_threshold, max_images=args.max_images,
+                            max_keypoints=args.max_keypoints, seed=args.seed, device=args.device,
+                            progress=_progress(args))
+    s = run_vocabulary_train(args.images, args.out, opt)
     print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
           f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
     return 0
+
+
+# ----------------------------------------------------------------------------------------------
+# the parser
 
 
 class _SourceAction(argparse.Action):
@@ -484,13 +290,8 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
     return src
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="torch-frontend",
-        description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
+def _add_track(sub) -> None:
+    """``track``: inputs, run options."""
     track = sub.add_parser(
         "track",
         help="track one or more sequences (EuRoC/TUM-VI folders, ROS bags, image folders) and write results",
@@ -506,8 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "sensor.yaml then gives the camera")
     _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
-    track.set_defaults(func=_cmd_track)
+    track.set_defaults(func=_cmd_track, flags=_TRACK_FLAGS)
 
+
+def _add_demo(sub) -> None:
+    """``demo`` (and ``demo --loop``)."""
     demo = sub.add_parser(
         "demo",
         help="run on the sample data shipped with the package and print a summary",
@@ -525,8 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="with --loop: the two laps are two sequences (streams) that share one map")
     dloop.add_argument("--separate-graphs", action="store_true",
                        help="with --loop --two-sequences: one pose graph per sequence instead of a shared map")
-    demo.set_defaults(func=_cmd_demo)
+    demo.set_defaults(func=_cmd_demo, flags=_DEMO_FLAGS)
 
+
+def _add_loop(sub) -> None:
+    """``loop``: inputs with their poses, vocabulary, pose graph and keyframe options."""
     loop = sub.add_parser(
         "loop",
         help="loop closure: images + a VIO trajectory -> loop-corrected trajectory (no ROS)",
@@ -582,8 +389,11 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     loop.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     loop.add_argument("--no-progress", action="store_true", help="no progress bar")
-    loop.set_defaults(func=_cmd_loop)
+    loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
+
+def _add_vocabulary(sub) -> None:
+    """``vocabulary train``."""
     vocab = sub.add_parser(
         "vocabulary",
         help="train a BRIEF bag-of-words vocabulary for loop closure",
@@ -614,12 +424,29 @@ def build_parser() -> argparse.ArgumentParser:
     vtrain.add_argument("--seed", type=int, default=0, help="k-medians seeding (default: 0)")
     vtrain.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
     vtrain.add_argument("--no-progress", action="store_true", help="no progress bar")
-    vocab.set_defaults(func=_cmd_vocabulary)
+    vocab.set_defaults(func=_cmd_vocabulary, flags=_VOCABULARY_FLAGS)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="torch-frontend",
+        description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary):
+        add(sub)
     return parser
 
 
 def _error(msg: str) -> None:
     print(f"torch-frontend: error: {' '.join(str(msg).split())}", file=sys.stderr)
+
+
+def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
+    """``exc``'s message with its option name (which starts it) replaced by the command's flag."""
+    msg = str(exc)
+    flag = flags.get(exc.option)
+    return flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
 
 
 def main(argv: List[str] | None = None) -> int:
@@ -632,6 +459,9 @@ def main(argv: List[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
         _error(str(exc))
+        return EXIT_USAGE
+    except OptionError as exc:
+        _error(_option_message(exc, getattr(args, "flags", {})))
         return EXIT_USAGE
     except DataError as exc:
         _error(str(exc))

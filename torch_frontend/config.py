@@ -1,4 +1,5 @@
-"""VINS configuration files: ``load_config`` (VINS-Mono and VINS-Fusion) and ``load_camera``.
+"""VINS configuration files (``load_config``: VINS-Mono and VINS-Fusion; ``load_camera``) and ASL
+``sensor.yaml`` camera files (``config_from_sensor_yaml``).
 
 Convention:
     Keys keep their VINS names (``max_cnt``, ``min_dist``, ``F_threshold``, ...). Values are read
@@ -12,6 +13,16 @@ A VINS-Mono config (a camodocal block in the same file) must give ``image_width`
 ``image_width`` and ``image_height`` (``max_cnt``/``min_dist`` read as 0 when absent, as in VINS, and
 ``FeatureTracker`` then refuses the config by name). A config with neither (an estimator-only config such as VINS's simulation config)
 loads with ``camera=None`` and the tracker keys left at their defaults.
+
+Without a VINS config, an ASL (EuRoC / TUM-VI) camera's ``sensor.yaml`` (Kalibr format) gives the
+camera: ``resolution: [W, H]``, ``intrinsics: [fu, fv, cu, cv]`` and ``distortion_model`` +
+``distortion_coefficients``: ``radial-tangential`` ``[k1, k2, p1, p2]`` -> ``PinholeCamera``;
+``equidistant`` ``[k1..k4]`` (TUM-VI) -> ``KannalaBrandtCamera`` with camodocal ``k2..k5 = k1..k4``
+(``camera_from_sensor_yaml``). ``config_from_sensor_yaml`` wraps it in a ``TrackerConfig`` with
+VINS-Mono's EuRoC front-end settings (``EUROC_FRONTEND``).
+
+This module imports neither torch nor the dataset readers (``torch_frontend.io``): the camera
+models (torch) are imported when a camera is built.
 """
 
 from __future__ import annotations
@@ -25,7 +36,7 @@ from typing import Any, Dict, List, Optional, Union
 import numpy as np
 
 from .errors import ConfigError
-from .io.fsyaml import read_opencv_yaml
+from .opencv_yaml import read_opencv_yaml
 
 PathLike = Union[str, Path]
 
@@ -39,6 +50,8 @@ _REQUIRED = {
     "fusion": ("image_width", "image_height"),
     "estimator": (),
 }
+# VINS-Mono's euroc_config.yaml front-end values, used when only a sensor.yaml is given.
+EUROC_FRONTEND = dict(max_cnt=150, min_dist=30, freq=10, F_threshold=1.0, equalize=True, fisheye=False)
 
 
 @dataclasses.dataclass
@@ -49,6 +62,7 @@ class TrackerConfig:
         path: the config file.
         flavour: ``"mono"`` (camera block in the file) or ``"fusion"`` (``camN_calib`` files);
             ``"estimator"`` when the file has no camera at all.
+        image_topic, imu_topic, image0_topic, image1_topic: the ROS topics as given (``""`` if absent).
         image_width, image_height: ``COL``, ``ROW`` in pixels.
         max_cnt: maximum number of tracked + new features per frame.
         min_dist: GFTT minimum distance and setMask disc radius (pixels).
@@ -56,6 +70,7 @@ class TrackerConfig:
         F_threshold: F-RANSAC threshold in virtual-pinhole pixels.
         show_track, equalize, fisheye, flow_back: VINS flags as bools.
         num_of_cam: 1 or 2 (VINS-Fusion); 1 for VINS-Mono.
+        cam0_calib, cam1_calib: the resolved camera files of a VINS-Fusion config, else None.
         camera: the camodocal model of camera 0 (a ``torch_frontend.camera.CameraModel``), or None.
         camera1: camera 1 for stereo VINS-Fusion configs, else None.
         body_T_cam0, body_T_cam1: 4×4 float64 extrinsics when the file gives them (VINS-Fusion).
@@ -248,4 +263,74 @@ def load_config(path: PathLike) -> TrackerConfig:
     return cfg
 
 
-__all__ = ["TrackerConfig", "load_config", "load_camera", "ConfigError"]
+# ----------------------------------------------------------------------------------------------
+# ASL sensor.yaml (Kalibr)
+
+
+def _numbers(raw: Dict[str, Any], key: str, n: int, path: Path) -> List[float]:
+    v = raw.get(key)
+    try:
+        vals = [float(x) for x in v]
+    except TypeError:
+        raise ConfigError(f"expected a list of {n} numbers, got {v!r}", path, key) from None
+    except ValueError:
+        raise ConfigError(f"expected numbers, got {v!r}", path, key) from None
+    if len(vals) != n:
+        raise ConfigError(f"expected {n} numbers, got {len(vals)}", path, key)
+    return vals
+
+
+def camera_from_sensor_yaml(path: PathLike):
+    """Camera model of an ASL ``sensor.yaml`` (see the module docstring).
+
+    Raises:
+        ConfigError: missing file or key, wrong list length, unsupported camera or distortion model.
+    """
+    from .camera import KannalaBrandtCamera, PinholeCamera
+
+    p = Path(path)
+    raw = read_opencv_yaml(p)
+    model = str(raw.get("camera_model", "pinhole")).lower()
+    if model != "pinhole":
+        raise ConfigError(f"unsupported camera_model {model!r} (expected 'pinhole')", p, "camera_model")
+    w, h = (int(x) for x in _numbers(raw, "resolution", 2, p))
+    fu, fv, cu, cv = _numbers(raw, "intrinsics", 4, p)
+    dist = str(raw.get("distortion_model", "radial-tangential")).lower()
+    name = str(raw.get("comment", p.parent.name))
+    if dist in ("radial-tangential", "radtan", "plumb_bob"):
+        k1, k2, p1, p2 = _numbers(raw, "distortion_coefficients", 4, p)
+        return PinholeCamera(k1, k2, p1, p2, fu, fv, cu, cv, width=w, height=h, camera_name=name)
+    if dist in ("equidistant", "fisheye"):
+        k1, k2, k3, k4 = _numbers(raw, "distortion_coefficients", 4, p)
+        return KannalaBrandtCamera(k1, k2, k3, k4, fu, fv, cu, cv, width=w, height=h, camera_name=name)
+    raise ConfigError(
+        f"unsupported distortion_model {dist!r} (expected 'radial-tangential' or 'equidistant')", p, "distortion_model"
+    )
+
+
+def config_from_sensor_yaml(path: PathLike, **overrides) -> TrackerConfig:
+    """A ``TrackerConfig`` from an ASL ``sensor.yaml``: its camera and size, and VINS-Mono's EuRoC
+    front-end settings (``EUROC_FRONTEND``: ``max_cnt 150, min_dist 30, freq 10, F_threshold 1,
+    equalize 1``) unless overridden by keyword (``TrackerConfig`` field names)."""
+    cam = camera_from_sensor_yaml(path)
+    settings = dict(EUROC_FRONTEND)
+    settings.update(overrides)
+    return TrackerConfig(
+        path=str(path),
+        flavour="mono",
+        image_width=int(cam.width),
+        image_height=int(cam.height),
+        camera=cam,
+        **settings,
+    )
+
+
+__all__ = [
+    "EUROC_FRONTEND",
+    "ConfigError",
+    "TrackerConfig",
+    "camera_from_sensor_yaml",
+    "config_from_sensor_yaml",
+    "load_camera",
+    "load_config",
+]

@@ -25,8 +25,12 @@ has its ``max_corners``. Measured on the 24 repo frames: identical corners in id
 
 Speed (CPU, 1 thread): the candidates of all streams are one flat list (NMS by 1-D shifted
 maxima, one ``nonzero``, two stable sorts), and image-sized passes run on groups of streams of
-about one 752x480 frame (``_BLOCK_PIXELS``), so temporaries stay cache-sized; see
-``benchmarks/bench_image.py``.
+about one 752x480 frame (``_tuning.Strategy.corner_streams``), so temporaries stay cache-sized;
+see ``benchmarks/bench_image.py``.
+
+Layers: the public functions check and normalise their inputs and call the ``_impl`` layer
+(:func:`_response_impl`, :func:`_good_features_impl`), which a pipeline that validated once calls
+directly.
 """
 
 from __future__ import annotations
@@ -37,31 +41,37 @@ from typing import Tuple, Union
 import torch
 import torch.nn.functional as F
 
-from ._checks import as_float_image, as_image_batch
+from . import _tuning
+from ._checks import as_image_batch
 from .errors import ConfigError
 
 __all__ = ["min_eigen_response", "harris_response", "good_features_to_track"]
 
-# candidates per greedy chunk (rank order): the first chunk has _CHUNK, each next one twice as
-# many up to _CHUNK_MAX; memory ~ 20 * B * survivors² + 12 * B * chunk * max_corners bytes.
-_CHUNK = 128
-_CHUNK_MAX = 512
 
-
-def _covariance_sums(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
-    """Un-scaled Sobel-3 products box-summed over ``block_size``, and OpenCV's derivative scale.
-
-    ``img``: (B, 1, H, W) float. Returns (Sxx, Sxy, Syy) each (B, H, W), and ``scale``.
-    """
+def check_block(height: int, width: int, block_size: int) -> None:
+    """The size checks of the responses: ``block_size >= 1`` (``ConfigError``) and an image large
+    enough for the Sobel border and the reflect-101 box sum (``ValueError``)."""
     if block_size < 1:
         raise ConfigError(f"block_size must be >= 1, got {block_size}")
-    H, W = img.shape[-2:]
+    H, W = height, width
     if H < 2 or W < 2:
         raise ValueError(f"img: expected H, W >= 2 for the Sobel border, got {(H, W)}")
     lo = block_size // 2
     hi = block_size - 1 - lo
     if max(lo, hi) >= min(H, W):
         raise ValueError(f"img: block_size {block_size} too large for image {(H, W)}")
+
+
+def _covariance_sums(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """Un-scaled Sobel-3 products box-summed over ``block_size``, and OpenCV's derivative scale.
+
+    ``img``: (B, 1, H, W) float (sizes checked by :func:`check_block`). Returns (Sxx, Sxy, Syy)
+    each (B, H, W), and ``scale``. The in-place accumulations act on fresh tensors that autograd
+    does not save, so this one form is also differentiable.
+    """
+    H, W = img.shape[-2:]
+    lo = block_size // 2
+    hi = block_size - 1 - lo
     # reflect-101 (OpenCV BORDER_DEFAULT) == torch 'reflect'. Separable Sobel by slicing: adds
     # are exact for integer grey levels and, done in place, much cheaper on CPU than a conv2d
     # with one input channel (fewer fresh full-size buffers).
@@ -120,48 +130,53 @@ def min_eigen_response(img: torch.Tensor, block_size: int = 3) -> torch.Tensor:
         ``(B, 1, H, W)`` response in the image's float dtype (float32 for uint8).
     """
     x = as_image_batch(img, "img")
-    return _stream_blocks(_min_eigen_impl, x, int(block_size))
+    check_block(x.shape[-2], x.shape[-1], int(block_size))
+    return _response_impl(x, False, int(block_size), 0.0)  # k: Harris only
 
 
-def _stream_blocks(fn, x: torch.Tensor, *args) -> torch.Tensor:
-    """``fn(float x, *args)`` on groups of streams of ~``_BLOCK_PIXELS`` pixels (CPU, no autograd).
+def _as_float(x: torch.Tensor) -> torch.Tensor:
+    """Grey levels as float (float32 for uint8; a float image as it is)."""
+    return x if x.is_floating_point() else x.to(torch.float32)
 
-    The response needs ~10 image-sized temporaries; for a whole batch they fall out of cache and
-    above glibc's mmap threshold (fresh buffers are page-faulted in on every call), which made
-    B=8 cost ~20x B=1. Per group they stay cache-sized; elsewhere this is a single call.
+
+def _response_impl(img: torch.Tensor, use_harris: bool, block_size: int, k: float) -> torch.Tensor:
+    """Min-eigenvalue (``use_harris=False``) or Harris response of ``img`` ``(B, 1, H, W)`` uint8 or
+    float 0..255 -> ``(B, 1, H, W)`` float, no input checks (sizes: :func:`check_block`; ``k`` is
+    used by Harris only).
+
+    On the CPU without autograd the streams are processed in groups
+    (``_tuning.Strategy.corner_streams``): the response needs ~10 image-sized temporaries, which
+    for a whole batch fall out of cache and above glibc's mmap threshold (fresh buffers are
+    page-faulted in on every call). The values are those of one pass.
     """
-    B, _, H, W = x.shape
-    per = max(1, _BLOCK_PIXELS // max(H * W, 1))
-    if x.device.type != "cpu" or x.requires_grad or B <= per:
-        return fn(as_float_image(x), *args)
+    def fn(x):
+        return _harris_impl(x, block_size, k) if use_harris else _min_eigen_impl(x, block_size)
+
+    B, _, H, W = img.shape
+    per = _tuning.for_device(img.device).corner_streams(B, H, W)
+    if per is None or img.requires_grad:
+        return fn(_as_float(img))
     out = None
     for b0 in range(0, B, per):
-        r = fn(as_float_image(x[b0:b0 + per]), *args)  # uint8 -> float per group, too
+        r = fn(_as_float(img[b0:b0 + per]))  # uint8 -> float per group, too
         if out is None:
             out = r.new_empty((B,) + tuple(r.shape[1:]))
         out[b0:b0 + per] = r
     return out
 
 
-# pixels per CPU block of streams in _stream_blocks (one 752x480 frame per block)
-_BLOCK_PIXELS = 1 << 19
-
-
 def _min_eigen_impl(x: torch.Tensor, block_size: int) -> torch.Tensor:
     sxx, sxy, syy, s = _covariance_sums(x, block_size)
     # lambda_min = ((Sxx + Syy) - sqrt((Sxx - Syy)² + 4 Sxy²)) / 2 on the un-scaled sums, times
     # scale² once (OpenCV scales first; the difference is ~1e-7 relative, and equal sums still
-    # give exactly equal responses, which keeps OpenCV's ties).
+    # give exactly equal responses, which keeps OpenCV's ties). The in-place steps act on fresh
+    # tensors autograd does not save; only the square root has a reference form (finite gradients
+    # where the discriminant is 0), which equals ``sqrt_`` wherever the input is finite.
     disc = sxx - syy
     disc = disc * disc
     disc.addcmul_(sxy, sxy, value=4.0)
-    if disc.requires_grad:
-        root = _safe_sqrt(disc)
-    else:
-        root = disc.sqrt_()
-    out = sxx + syy
-    out = out - root if out.requires_grad else out.sub_(root)
-    return out.mul_(0.5 * s * s).unsqueeze(1)
+    root = disc.sqrt_() if _tuning.inplace_ok(disc) else _safe_sqrt(disc)
+    return (sxx + syy).sub_(root).mul_(0.5 * s * s).unsqueeze(1)
 
 
 def harris_response(img: torch.Tensor, block_size: int = 3, k: float = 0.04) -> torch.Tensor:
@@ -173,7 +188,8 @@ def harris_response(img: torch.Tensor, block_size: int = 3, k: float = 0.04) -> 
         ``(B, 1, H, W)`` in the image's float dtype (float32 for uint8).
     """
     x = as_image_batch(img, "img")
-    return _stream_blocks(_harris_impl, x, int(block_size), float(k))
+    check_block(x.shape[-2], x.shape[-1], int(block_size))
+    return _response_impl(x, True, int(block_size), float(k))
 
 
 def _harris_impl(x: torch.Tensor, block_size: int, k: float) -> torch.Tensor:
@@ -185,10 +201,11 @@ def _harris_impl(x: torch.Tensor, block_size: int, k: float) -> torch.Tensor:
     return (a * c - b * b - k * (a + c) * (a + c)).unsqueeze(1)
 
 
-def _mask_batch(mask: torch.Tensor | None, B: int, H: int, W: int, device) -> torch.Tensor:
-    """``mask``: None, (H, W), (B, H, W) or (B, 1, H, W); non-zero = allowed -> (B, H, W) bool."""
+def _mask_batch(mask: torch.Tensor | None, B: int, H: int, W: int, device) -> torch.Tensor | None:
+    """``mask``: None, (H, W), (B, H, W) or (B, 1, H, W); non-zero = allowed -> (B, H, W) bool
+    (None stays None: no mask)."""
     if mask is None:
-        return torch.ones(B, H, W, dtype=torch.bool, device=device)
+        return None
     m = mask
     if m.dim() == 2:
         m = m.unsqueeze(0).expand(B, H, W)
@@ -238,11 +255,49 @@ def good_features_to_track(
         response. valid: ``(B, K)`` bool; invalid lanes hold 0.
     """
     x = as_image_batch(img, "img")
-    if use_harris:
-        resp = harris_response(x, block_size, k)
-    else:
-        resp = min_eigen_response(x, block_size)
-    return _gftt_from_response(resp[:, 0].detach(), max_corners, quality_level, min_distance, mask, capacity)
+    B, _, H, W = x.shape
+    check_block(H, W, int(block_size))
+    return _good_features_impl(x, _max_corners(max_corners, B, x.device), float(quality_level),
+                               float(min_distance), _mask_batch(mask, B, H, W, x.device), bool(use_harris),
+                               int(block_size), float(k), None if capacity is None else int(capacity))
+
+
+def _max_corners(max_corners: Union[int, torch.Tensor], B: int, device) -> torch.Tensor:
+    """An int or a ``(B,)`` integer tensor -> ``(B,)`` int64 >= 0."""
+    mc = torch.as_tensor(max_corners, device=device)
+    if mc.dim() == 0:
+        mc = mc.expand(B)
+    elif tuple(mc.shape) != (B,):
+        raise ValueError(f"max_corners: expected an int or shape ({B},), got {tuple(mc.shape)}")
+    return mc.long().clamp_min(0)
+
+
+def _good_features_impl(
+    img: torch.Tensor,
+    max_corners: torch.Tensor,
+    quality_level: float,
+    min_distance: float,
+    mask: torch.Tensor | None,
+    use_harris: bool,
+    block_size: int,
+    k: float,
+    capacity: int | None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """:func:`good_features_to_track` without input checks.
+
+    Args:
+        img: ``(B, 1, H, W)`` uint8 or float grey levels 0..255 (sizes: :func:`check_block`).
+        max_corners: ``(B,)`` int64 >= 0, corners per stream.
+        quality_level, min_distance: as OpenCV (``min_distance`` in pixels).
+        mask: ``(B, H, W)`` bool (True = allowed) or None (everywhere).
+        use_harris, block_size, k: the response (Harris with ``k``, else the min eigenvalue).
+        capacity: output size K, or None for ``max(max_corners)`` (a host sync).
+
+    Returns:
+        ``pts (B, K, 2)`` float, ``valid (B, K)`` bool, as :func:`good_features_to_track`.
+    """
+    resp = _response_impl(img, use_harris, block_size, k)[:, 0].detach()
+    return _select_corners(resp, max_corners, quality_level, min_distance, mask, capacity)
 
 
 def _gftt_from_response(
@@ -253,25 +308,36 @@ def _gftt_from_response(
     mask: torch.Tensor | None,
     capacity: int | None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
-    """GFTT selection on a response map ``resp`` (B, H, W) float. See good_features_to_track."""
+    """GFTT selection on a response map ``resp`` (B, H, W) float, inputs as
+    :func:`good_features_to_track` (checked and normalised here)."""
+    B, H, W = resp.shape
+    return _select_corners(resp, _max_corners(max_corners, B, resp.device), float(quality_level),
+                           float(min_distance), _mask_batch(mask, B, H, W, resp.device),
+                           None if capacity is None else int(capacity))
+
+
+def _select_corners(
+    resp: torch.Tensor,
+    mc: torch.Tensor,
+    quality_level: float,
+    min_distance: float,
+    m: torch.Tensor | None,
+    capacity: int | None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """GFTT selection on ``resp`` (B, H, W) float with ``mc`` (B,) int64 >= 0 corners per stream and
+    ``m`` (B, H, W) bool or None; no input checks. See :func:`good_features_to_track`."""
     B, H, W = resp.shape
     dev = resp.device
-    mc = torch.as_tensor(max_corners, device=dev)
-    if mc.dim() == 0:
-        mc = mc.expand(B)
-    elif tuple(mc.shape) != (B,):
-        raise ValueError(f"max_corners: expected an int or shape ({B},), got {tuple(mc.shape)}")
-    mc = mc.long().clamp_min(0)
-    K = int(capacity) if capacity is not None else (int(mc.max()) if B > 0 else 0)
+    K = capacity if capacity is not None else (int(mc.max()) if B > 0 else 0)
     out_pts = torch.zeros(B, K, 2, dtype=resp.dtype, device=dev)
     out_valid = torch.zeros(B, K, dtype=torch.bool, device=dev)
     if K <= 0 or B == 0:
         return out_pts, out_valid
     mc = mc.clamp_max(K)
-    m = _mask_batch(mask, B, H, W, dev)
+    strategy = _tuning.for_device(dev)
 
     # max inside the mask (VINS-Fusion-gpu#25); an empty mask gives maxVal 0 like minMaxLoc.
-    if mask is None:
+    if m is None:
         max_val = resp.flatten(1).amax(1)
     else:
         max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
@@ -279,16 +345,16 @@ def _gftt_from_response(
     # threshold() on a float32 image casts its double threshold to float
     thr = (max_val.double() * float(quality_level)).to(resp.dtype)
     # candidates: t != 0 and t == its 3x3 dilation (border excluded), t = resp thresholded to 0.
-    # On CPU by groups of streams (see _stream_blocks: image-sized temporaries stay cache-sized).
+    # On CPU by groups of streams (as _response_impl: image-sized temporaries stay cache-sized).
     # The candidates of all streams form one flat list of indices into (B*H*W,), raster order
     # (nonzero: one host sync per group, for its length).
-    per = B if dev.type != "cpu" else max(1, _BLOCK_PIXELS // max(H * W, 1))
+    per = strategy.corner_streams(B, H, W) or B
     flats = []
     for b0 in range(0, B, per):
         r = resp[b0:b0 + per]
         t = torch.where(r > thr[b0:b0 + per, None, None], r, 0.0)
         cand = _nms_candidates(t)
-        if mask is not None:
+        if m is not None:
             cand &= m[b0:b0 + per]
         f = cand.view(-1).nonzero().squeeze(1)
         flats.append(f + b0 * H * W if b0 else f)
@@ -330,7 +396,7 @@ def _gftt_from_response(
     pos = pos_flat.view(B, M, 2)  # (B, M, 2) long, rank order
     cvalid = cvalid.view(B, M)
 
-    accepted = _greedy_accept(pos, cvalid, mc, float(min_distance))
+    accepted = _greedy_accept(pos, cvalid, mc, min_distance, strategy.gftt_chunk, strategy.gftt_chunk_max)
 
     # cut at max_corners by rank and compact into (B, K)
     rank = torch.cumsum(accepted.long(), 1) - 1
@@ -404,7 +470,8 @@ def _nms_candidates(t: torch.Tensor) -> torch.Tensor:
     return cand
 
 
-def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float) -> torch.Tensor:
+def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float,
+                   chunk: int, chunk_max: int) -> torch.Tensor:
     """Exact sequential greedy minimum-distance acceptance, in tensor rounds.
 
     ``pos`` (B, M, 2) integer pixel positions in rank order, ``cvalid`` (B, M), ``mc`` (B,) the
@@ -412,7 +479,8 @@ def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, mi
     Returns ``accepted`` (B, M) bool: candidate i accepted iff no *accepted* higher-ranked
     candidate conflicts with it - exactly OpenCV's sequential loop.
 
-    Candidates are processed in rank chunks of ``_CHUNK``, doubling up to ``_CHUNK_MAX``. A
+    Candidates are processed in rank chunks of ``chunk``, doubling up to ``chunk_max`` (speed and
+    memory only: ``_tuning.Strategy.gftt_chunk``). A
     chunk's candidates first test the corners accepted in earlier chunks (a fixed buffer of
     max(mc) slots); the survivors are compacted (rank order kept) and resolve among themselves
     in rounds: every undecided candidate with an accepted higher
@@ -460,12 +528,12 @@ def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, mi
     acc_ok = torch.zeros(B, kcap + 1, dtype=torch.bool, device=dev)
     count = torch.zeros(B, dtype=torch.long, device=dev)
     filled = 0  # max(count), capped at kcap (host copy)
-    start, size = 0, _CHUNK
+    start, size = 0, chunk
     while start < M:
         stop = min(start + size, M)
         # later chunks are mostly rejected by the accepted buffer: grow them (fewer rounds of
         # Python overhead) while the survivors alone enter the quadratic in-chunk resolution
-        size = min(2 * size, _CHUNK_MAX)
+        size = min(2 * size, chunk_max)
         live = count < mc  # streams still collecting
         v = cvalid[:, start:stop] & live[:, None]
         if not bool(v.any()):

@@ -12,6 +12,13 @@ lanes (re-compacted when it halves), stopping when none is left: one host sync p
 The per-iteration kernel ``_lk_step`` is a pure tensor function; :func:`compile_step` swaps in a
 ``torch.compile`` d version.
 
+Layers: :func:`track_lk` checks and normalises its arguments (into :class:`LKOptions`) and calls
+``_track_lk_impl`` (the forward pass) and, with ``forward_backward``, ``_forward_backward_impl``
+(VINS-Fusion's FLOW_BACK check); a pipeline that validated once calls those two on its pyramids.
+On the CPU the streams run in groups of at most ~1024 points (``_tuning.Strategy.lk_streams``),
+elsewhere in one pass. Every fast form (in place, window-view gather, folded template) gives the
+reference form's values bit for bit, so results do not depend on whether gradients are recorded.
+
 Performance layout (CPU and GPU alike), measured with ``benchmarks/bench_lk.py`` and py-spy:
 
 * Both images are padded once per frame with BORDER_REFLECT_101 (:meth:`Pyramid.padded`: built when
@@ -66,17 +73,20 @@ gradient w.r.t. the points is the one-sided (right) derivative.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+from dataclasses import dataclass
 from typing import Tuple, Union
 
 import torch
 
+from . import _tuning
 from ._checks import as_image_batch, check_points, check_shape, default_valid
 from .errors import ConfigError
-from .pyramid import Pyramid, build_pyramid
+from .pyramid import Pyramid, _build_pyramid_impl
 
-__all__ = ["track_lk", "compile_step"]
+__all__ = ["track_lk", "LKOptions", "compile_step"]
 
 _W_BITS = 14
 _W_ONE = float(1 << _W_BITS)
@@ -91,11 +101,12 @@ ImageOrPyramid = Union[torch.Tensor, Pyramid]
 
 
 def _ste(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
-    """Value of ``hard`` with the gradient of ``soft`` (straight-through); plain ``hard`` when no
-    gradient is needed (saves the extra ops)."""
-    if soft.requires_grad:
-        return soft + (hard - soft).detach()
-    return hard
+    """Value of ``hard`` with the gradient of ``soft`` (straight-through estimator). The reference
+    form adds ``soft - soft.detach()``, which is exactly 0, so the value is ``hard`` bit for bit; the
+    fast form (no gradient needed) is ``hard`` itself."""
+    if _tuning.inplace_ok(soft):
+        return hard
+    return hard.detach() + (soft - soft.detach())
 
 
 def _soft_weights(frac: torch.Tensor) -> torch.Tensor:
@@ -212,13 +223,13 @@ class _Level:
 
 
 def _gather(view: torch.Tensor, flat: torch.Tensor, base: torch.Tensor, offs: torch.Tensor) -> torch.Tensor:
-    """Windows with top-left flat indices ``base`` (m,) as ``(m, *window)``: one ``index_select`` of
-    whole patches through the overlapping window view, or, when ``flat`` needs a gradient, through an
-    explicit differentiable index ``base + offs``."""
-    if flat.requires_grad:
-        idx = base.view(-1, 1, 1) + offs
-        return flat.index_select(0, idx.view(-1)).view(idx.shape)
-    return view.index_select(0, base)
+    """Windows with top-left flat indices ``base`` (m,) as ``(m, *window)``. Reference form: an
+    explicit differentiable index ``base + offs`` into ``flat``; fast form: one ``index_select`` of
+    whole patches through the overlapping window view of ``flat`` (the same elements)."""
+    if _tuning.inplace_ok(flat):
+        return view.index_select(0, base)
+    idx = base.view(-1, 1, 1) + offs
+    return flat.index_select(0, idx.view(-1)).view(idx.shape)
 
 
 def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k: dict, spanm1,
@@ -256,11 +267,11 @@ def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k:
             w = w.to(p.dtype)
         if iv_init:  # iv holds 1/2 - template: floor(x + 1/2) - iv = floor(x + (1/2 - iv)), iv integer
             diff = _interp_flat(jp, w, n, pw, 0, iv).floor_()
-        elif frac.requires_grad or jp.requires_grad:  # straight-through: gradient of the float version
+        elif _tuning.inplace_ok(frac, jp):
+            diff = _interp_flat(jp, w, n, pw, 0, c05).floor_().sub_(iv)
+        else:  # reference: straight-through, the values above with the gradient of the float version
             jval = _interp_flat(jp, _ste(_soft_weights(frac) * 32.0, w), n, pw, 0, c05)
             diff = _ste(jval - 0.5, torch.floor(jval)) - iv
-        else:
-            diff = _interp_flat(jp, w, n, pw, 0, c05).floor_().sub_(iv)
     else:  # x32: grey levels in 1/32 units (exact scaling)
         diff = _interp_flat(jp, _soft_weights(frac) * 32.0, n, pw) - iv
     b = (g * diff.unsqueeze(1)).sum(2).t() * _FLT_SCALE  # (2, m): b1, b2
@@ -301,11 +312,10 @@ def _interp_flat(f: torch.Tensor, w: torch.Tensor, n: int, pitch: int, off: int 
     w0, w1, w2, w3 = w.view(w.shape + (1,) * (f.dim() - 1)).unbind(0)
     t0, t1 = f[..., off:off + n], f[..., off + 1:off + 1 + n]
     t2, t3 = f[..., off + pitch:off + pitch + n], f[..., off + pitch + 1:off + pitch + 1 + n]
-    if f.requires_grad or w.requires_grad or (init is not None and init.requires_grad):
-        out = t0 * w0 if init is None else torch.addcmul(init, t0, w0)
-        return torch.addcmul(torch.addcmul(torch.addcmul(out, t1, w1), t2, w2), t3, w3)
-    out = torch.mul(t0, w0) if init is None else torch.addcmul(init, t0, w0)
-    return out.addcmul_(t1, w1).addcmul_(t2, w2).addcmul_(t3, w3)
+    out = t0 * w0 if init is None else torch.addcmul(init, t0, w0)
+    if _tuning.inplace_ok(f, w, init):  # the same multiply-adds in place
+        return out.addcmul_(t1, w1).addcmul_(t2, w2).addcmul_(t3, w3)
+    return torch.addcmul(torch.addcmul(torch.addcmul(out, t1, w1), t2, w2), t3, w3)
 
 
 def _scharr_flat(f: torch.Tensor, pitch: int, n: int) -> torch.Tensor:
@@ -316,11 +326,12 @@ def _scharr_flat(f: torch.Tensor, pitch: int, n: int) -> torch.Tensor:
     ``n``). Needs ``L >= n + 2 pitch``. Integer taps: exact on integer grey levels (float32 or int32)
     whatever the order of the additions."""
     up, mid, down = f[:, 0:n], f[:, pitch:pitch + n], f[:, 2 * pitch:2 * pitch + n]
-    if f.requires_grad:
-        s = (up + down) * 3 + mid * 10
+    if not _tuning.inplace_ok(f):
+        s = torch.add((up + down) * 3, mid, alpha=10)
         d = down - up
-        G = torch.stack((s[:, 2:] - s[:, :-2], (d[:, :-2] + d[:, 2:]) * 3 + d[:, 1:-1] * 10), 1)
+        G = torch.stack((s[:, 2:] - s[:, :-2], torch.add((d[:, :-2] + d[:, 2:]) * 3, d[:, 1:-1], alpha=10)), 1)
         return torch.nn.functional.pad(G, (0, 3))
+    # fast form: the same operations into one preallocated output
     m = f.shape[0]
     out = f.new_empty((m, 2, n + 1))
     out[:, :, n - 2:].zero_()
@@ -354,7 +365,8 @@ def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Te
     m = P.shape[0]
     f = P.reshape(m, -1)
     nS, nW = (wh + 1) * C, wh * C  # derivative rows (wh + 1), window rows (wh), pitch C
-    need_soft = not fixed or P.requires_grad or frac.requires_grad
+    # the float (soft) windows: the result in float mode, the straight-through gradient in fixed point
+    need_soft = not fixed or not _tuning.inplace_ok(P, frac)
     # derivatives: zero where the window hangs over the image edge (BORDER_CONSTANT); with ``sync``
     # one host sync skips the mask pass in the usual case of no window at the edge
     edge = None
@@ -365,10 +377,10 @@ def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Te
     def masked(G):
         if edge is None:
             return G
-        if G.requires_grad:
-            return torch.cat((G[..., :nS] * edge.to(G.dtype), G[..., nS:]), -1)
-        G[..., :nS] *= edge.to(G.dtype)
-        return G
+        if _tuning.inplace_ok(G):
+            G[..., :nS] *= edge.to(G.dtype)
+            return G
+        return torch.cat((G[..., :nS] * edge.to(G.dtype), G[..., nS:]), -1)
 
     def unpitch(x):  # (m, ..., wh * C) -> the iterations' layout (m, ..., wh * (ww + 1))
         return _pitch(x.unflatten(-1, (wh, C))[..., :ww])
@@ -387,7 +399,9 @@ def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Te
             PGd = PG.detach() if need_soft else masked(_scharr_flat(f.detach(), C, nS))
             hg = _interp_flat(PGd, iw.double() * 2.0**-14, nW, C, 0, k["c05"]).floor_()
         else:  # CV_DESCALE(s, 14) = (s + 2^13) >> 14
-            PGi = PG.detach().int() if need_soft else masked(_scharr_flat(f.detach().int(), C, nS))
+            # from the integer grey levels, also when the float derivatives exist (they truncate to
+            # the same integers only for integer grey levels)
+            PGi = masked(_scharr_flat(f.detach().int(), C, nS))
             hg = _interp_flat(PGi, iw.int(), nW, C, 0, k["i8192"]).bitwise_right_shift_(_W_BITS).to(dtype)
         if need_soft:
             iv, g = _ste(iv, hiv), _ste(g, hg)
@@ -402,14 +416,12 @@ def _lk_impl(
     pts: torch.Tensor,
     valid: torch.Tensor,
     init: torch.Tensor | None,
-    win: Tuple[int, int],
+    opts: LKOptions,
     top: int,
-    max_iters: int,
-    eps2: float,
-    min_eig: float,
-    fixed: bool,
-    early_exit: bool,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The LK of one group of streams on levels ``top..0`` (see :func:`_track_lk_impl`)."""
+    win, max_iters, min_eig = opts.win_size, opts.max_iters, opts.min_eig_threshold
+    fixed, early_exit, eps2 = opts.fixed_point, opts.early_exit, opts.eps * opts.eps
     B, N, _ = pts.shape
     M = B * N
     dtype, dev = pts.dtype, pts.device
@@ -468,7 +480,7 @@ def _lk_impl(
             dd = d11 - d22
             eig = (d22 + d11 - torch.sqrt(dd * dd + 4.0 * d12 * d12)) / (2.0 * ww * wh)
             ok = act & (eig >= min_eig) & (det >= _FLT_EPSILON)
-        if A.requires_grad:
+        if not _tuning.inplace_ok(A):  # the same determinant, differentiable
             det = a11 * a22 - a12 * a12
         # keep masked lanes finite: torch.where differentiates both branches
         dinv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
@@ -478,7 +490,7 @@ def _lk_impl(
         # fixed point without gradients: the iterations add the rounding's 1/2 and subtract the
         # template in the interpolation's first multiply-add (one pass less per iteration; exact:
         # integers and multiples of 2^-9 below 2^14)
-        iv_init = fixed and not (iv.requires_grad or lv.Jp.requires_grad or o0.requires_grad)
+        iv_init = fixed and _tuning.inplace_ok(iv, lv.Jp, o0)
         if iv_init:
             iv = k["c05"] - iv
         fail = ~ok if level == 0 else None  # level 0: status 0 for failed eigenvalue test / lost lanes
@@ -548,23 +560,66 @@ def _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half):
 def _as_pyramid(x: ImageOrPyramid, name: str, levels: int) -> Pyramid:
     if isinstance(x, Pyramid):
         return x
-    img = as_image_batch(x, name)
-    return build_pyramid(img, levels, with_gradients=False)
+    return _build_pyramid_impl(as_image_batch(x, name), levels, False, x.dtype == torch.uint8)
 
 
-def _effective_top(prev: Pyramid, nxt: Pyramid, max_level: int, win: Tuple[int, int]) -> int:
-    top = min(max_level, prev.max_level, nxt.max_level)
-    for l in range(top + 1):
+def _check_level_sizes(prev: Pyramid, nxt: Pyramid, levels: int) -> None:
+    for l in range(min(levels, prev.max_level, nxt.max_level) + 1):
         if prev.levels[l].shape[-2:] != nxt.levels[l].shape[-2:]:
             raise ValueError(
                 f"prev/next: level {l} sizes differ: {tuple(prev.levels[l].shape)} vs {tuple(nxt.levels[l].shape)}"
             )
-    # buildOpticalFlowPyramid stops before a level whose size is <= win_size
+
+
+def _level_cap(prev: Pyramid, nxt: Pyramid, max_level: int, win: Tuple[int, int]) -> int:
+    """The top level an LK uses: ``max_level`` capped by both pyramids and where OpenCV's
+    ``buildOpticalFlowPyramid`` stops (before a level whose size is <= ``win``)."""
+    top = min(max_level, prev.max_level, nxt.max_level)
     for l in range(1, top + 1):
         h, w = prev.levels[l].shape[-2:]
         if w <= win[0] or h <= win[1]:
             return l - 1
     return top
+
+
+@dataclass(frozen=True)
+class LKOptions:
+    """The parameters of one LK pass, checked and normalised once (as :func:`track_lk` takes them).
+
+    Attributes:
+        win_size: window ``(w, h)`` in pixels, each > 2 (an int is taken as ``(w, w)``).
+        max_level: top pyramid level, >= 0 (capped by the pyramids and OpenCV's size rule).
+        max_iters: iterations per level, clamped to ``[0, 100]`` as OpenCV.
+        eps: stop when ``|delta| <= eps`` pixels, clamped to ``[0, 10]`` as OpenCV.
+        min_eig_threshold: ``minEigThreshold``.
+        fixed_point: OpenCV's 14-bit fixed-point interpolation (8-bit images).
+        early_exit: compact to the still-moving points, stop when none is left (one host sync per
+            iteration); False: exactly ``max_iters`` masked iterations, no host sync.
+
+    Raises:
+        ConfigError: a window <= 2 or a negative / non-int ``max_level``.
+    """
+
+    win_size: Tuple[int, int] = (21, 21)
+    max_level: int = 3
+    max_iters: int = 30
+    eps: float = 0.01
+    min_eig_threshold: float = 1e-4
+    fixed_point: bool = True
+    early_exit: bool = True
+
+    def __post_init__(self):
+        win = self.win_size
+        win = (win, win) if isinstance(win, int) else (int(win[0]), int(win[1]))
+        if win[0] <= 2 or win[1] <= 2:
+            raise ConfigError(f"win_size must be > 2 in both axes, got {self.win_size!r}")
+        if not isinstance(self.max_level, int) or self.max_level < 0:
+            raise ConfigError(f"max_level must be an int >= 0, got {self.max_level!r}")
+        fields = dict(win_size=win, max_iters=min(max(int(self.max_iters), 0), 100),
+                      eps=min(max(float(self.eps), 0.0), 10.0), min_eig_threshold=float(self.min_eig_threshold),
+                      fixed_point=bool(self.fixed_point), early_exit=bool(self.early_exit))
+        for name, value in fields.items():
+            object.__setattr__(self, name, value)
 
 
 def track_lk(
@@ -590,8 +645,8 @@ def track_lk(
 
     Args:
         prev: previous image ``(B, 1, H, W)`` / ``(B, H, W)`` (uint8 or float 0..255) or its
-            :class:`~torch_frontend.pyramid.Pyramid` (reused across frames; gradients are computed if
-            it has none).
+            :class:`~torch_frontend.pyramid.Pyramid` (reused across frames; the LK takes the
+            derivatives it needs from its own windows, so the pyramid needs no ``grads``).
         next: next image or pyramid, same sizes.
         pts: ``(B, N, 2)`` float, pixels ``(x, y)`` in ``prev``.
         valid: ``(B, N)`` bool, padded lanes False (not tracked, status False). Default all True.
@@ -625,84 +680,104 @@ def track_lk(
         threshold, (with ``forward_backward``) that fail the check. Lanes with status False hold
         whatever OpenCV would leave there (finite). Gradients flow to ``pts``, ``init_pts`` and float
         images (through the pyramid) via unrolled iterations; the backward check is discrete (no
-        gradient).
+        gradient). The values do not depend on whether gradients are recorded.
     """
     check_points(pts, "pts")
     valid = default_valid(pts, valid, "valid")
     if init_pts is not None:
         check_shape(init_pts, tuple(pts.shape), "init_pts")
-    if isinstance(win_size, int):
-        win = (win_size, win_size)
-    else:
-        win = (int(win_size[0]), int(win_size[1]))
-    if win[0] <= 2 or win[1] <= 2:
-        raise ConfigError(f"win_size must be > 2 in both axes, got {win_size!r}")
-    if not isinstance(max_level, int) or max_level < 0:
-        raise ConfigError(f"max_level must be an int >= 0, got {max_level!r}")
-    fb_level = max_level if fb_max_level is None else fb_max_level
-    if not isinstance(fb_level, int) or fb_level < 0:
-        raise ConfigError(f"fb_max_level must be an int >= 0, got {fb_max_level!r}")
-    max_iters = min(max(int(max_iters), 0), 100)
-    eps = min(max(float(eps), 0.0), 10.0)
-    eps2 = eps * eps
-
     if fixed_point is None:
 
         def _is8(x):
             return x.rounded if isinstance(x, Pyramid) else as_image_batch(x).dtype == torch.uint8
 
         fixed_point = _is8(prev) and _is8(next)
-    levels = max(max_level, fb_level if forward_backward else 0)
-    B, N = pts.shape[:2]
+    opts = LKOptions(win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, early_exit)
+    fb_level = opts.max_level if fb_max_level is None else fb_max_level
+    if not isinstance(fb_level, int) or fb_level < 0:
+        raise ConfigError(f"fb_max_level must be an int >= 0, got {fb_max_level!r}")
+    levels = max(opts.max_level, fb_level if forward_backward else 0)
+    B = pts.shape[0]
     for name, x in (("prev", prev), ("next", next)):
         nb = x.batch if isinstance(x, Pyramid) else as_image_batch(x, name).shape[0]
         if nb != B:
             raise ValueError(f"{name}: batch {nb} does not match pts batch {B}")
-    opts = (max_level, fb_level, win, max_iters, eps2, float(min_eig_threshold), bool(fixed_point), early_exit,
-            forward_backward, fb_use_initial_flow, float(fb_threshold), levels)
-    # streams are independent: process them in groups of <= _MAX_LANES points (pyramids included)
-    # so that the per-level temporaries ((win+1)^2 x lanes windows and their indices) stay cache
-    # friendly; a loop over groups of streams, not over points (measured on 2 cores: B=8 x N=1000 in
-    # groups of 4 streams took 2x longer than stream by stream)
-    per = max(1, min(_MAX_STREAMS, _MAX_LANES // max(N, 1)))
-    if B <= per:
-        return _track(prev, next, pts, valid, init_pts, *opts)
-    # pyramids and their padded levels for all streams at once: the groups share them as views, and
-    # a pyramid given as ``next`` keeps its padded levels for the call in which it is ``prev``
-    prev, next = _as_pyramid(prev, "prev", levels), _as_pyramid(next, "next", levels)
-    for l in range(_effective_top(prev, next, levels, win) + 1):
+    P, Q = _as_pyramid(prev, "prev", levels), _as_pyramid(next, "next", levels)
+    _check_level_sizes(P, Q, levels)
+    out, status = _track_lk_impl(P, Q, pts, valid, init_pts, opts)
+    if forward_backward:
+        status = _forward_backward_impl(P, Q, pts, out, status, opts, fb_level, float(fb_threshold),
+                                        bool(fb_use_initial_flow))
+    return out, status
+
+
+def _track_lk_impl(
+    prev: Pyramid,
+    next: Pyramid,
+    pts: torch.Tensor,
+    valid: torch.Tensor,
+    init_pts: torch.Tensor | None,
+    opts: LKOptions,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Forward LK (:func:`track_lk` without the backward check), no input checks.
+
+    Args:
+        prev, next: pyramids of the B streams, with equal level sizes (as many levels as
+            ``opts.max_level`` asks for, or fewer: the LK then uses fewer).
+        pts: ``(B, N, 2)`` float, pixels ``(x, y)`` in ``prev``.
+        valid: ``(B, N)`` bool.
+        init_pts: ``(B, N, 2)`` initial guess in ``next``, or None (start at ``pts``).
+        opts: :class:`LKOptions`.
+
+    Returns:
+        ``next_pts (B, N, 2)`` (pts dtype, pixels in ``next``) and ``status (B, N)`` bool.
+
+    On the CPU the streams are tracked in groups (``_tuning.Strategy.lk_streams``), so that the
+    per-level temporaries (``(win+1)^2 x lanes`` windows and their indices) stay cache friendly; the
+    padded levels are built once for the whole batch and shared by the groups as views (a pyramid
+    that is ``next`` now keeps them for the call in which it is ``prev``). Elsewhere: one pass.
+    """
+    top = _level_cap(prev, next, opts.max_level, opts.win_size)
+    B, N = pts.shape[:2]
+    per = _tuning.for_device(pts.device).lk_streams(B, N)
+    if per is None:
+        return _lk_impl(prev, next, pts, valid, init_pts, opts, top)
+    ww, wh = opts.win_size
+    for l in range(top + 1):
         for x in (prev, next):
-            x.padded(l, win[1] + 1, win[0] + 1, pts.dtype)
+            x.padded(l, wh + 1, ww + 1, pts.dtype)
     outs, sts = [], []
     for s0 in range(0, B, per):
         sl = slice(s0, min(B, s0 + per))
-        o, st = _track(_select(prev, sl), _select(next, sl), pts[sl], valid[sl],
-                       None if init_pts is None else init_pts[sl], *opts)
+        o, st = _lk_impl(prev.select(sl), next.select(sl), pts[sl], valid[sl],
+                         None if init_pts is None else init_pts[sl], opts, top)
         outs.append(o)
         sts.append(st)
     return torch.cat(outs), torch.cat(sts)
 
 
-def _select(x: ImageOrPyramid, sl: slice) -> ImageOrPyramid:
-    return x.select(sl) if isinstance(x, Pyramid) else as_image_batch(x)[sl]
+def _forward_backward_impl(
+    prev: Pyramid,
+    next: Pyramid,
+    pts: torch.Tensor,
+    out: torch.Tensor,
+    status: torch.Tensor,
+    opts: LKOptions,
+    fb_max_level: int,
+    fb_threshold: float,
+    fb_use_initial_flow: bool,
+) -> torch.Tensor:
+    """VINS-Fusion's FLOW_BACK check of a forward LK result, no input checks.
 
-
-_MAX_LANES = 1024
-_MAX_STREAMS = 8
-
-
-def _track(prev, nxt, pts, valid, init_pts, max_level, fb_level, win, max_iters, eps2, min_eig, fixed,
-           early_exit, forward_backward, fb_use_initial_flow, fb_threshold, levels):
-    P = _as_pyramid(prev, "prev", levels)
-    Q = _as_pyramid(nxt, "next", levels)
-    top = _effective_top(P, Q, max_level, win)
-    fb_top = _effective_top(Q, P, fb_level, win) if forward_backward else 0
-    out, status = _lk_impl(P, Q, pts, valid, init_pts, win, top, max_iters, eps2, min_eig, fixed, early_exit)
-    if forward_backward:
-        with torch.no_grad():  # a discrete acceptance test: no gradient
-            init = pts.detach() if fb_use_initial_flow else None
-            back, st_b = _lk_impl(Q, P, out.detach(), status, init, win, fb_top, max_iters, eps2, min_eig,
-                                  fixed, early_exit)
-            err = torch.linalg.vector_norm((back - pts.detach()).double(), dim=-1)
-            status = status & st_b & (err <= fb_threshold)
-    return out, status
+    Tracks ``out`` back from ``next`` to ``prev`` (lanes with ``status``; ``opts`` with
+    ``max_level = fb_max_level``; starting at ``pts`` when ``fb_use_initial_flow``, else at ``out``)
+    and returns ``status & back_status & (|back - pts| <= fb_threshold)`` ``(B, N)`` bool, the
+    distance in float64 pixels. ``pts``, ``out``: ``(B, N, 2)``; ``status``: ``(B, N)`` bool.
+    A discrete test: no gradient.
+    """
+    with torch.no_grad():
+        init = pts.detach() if fb_use_initial_flow else None
+        back, st_b = _track_lk_impl(next, prev, out.detach(), status, init,
+                                    dataclasses.replace(opts, max_level=fb_max_level))
+        err = torch.linalg.vector_norm((back - pts.detach()).double(), dim=-1)
+        return status & st_b & (err <= fb_threshold)

@@ -108,6 +108,25 @@ def distance_mask(
     if radius < 0:
         raise ConfigError(f"radius must be >= 0, got {radius}")
     mask = _base_mask_batch(base_mask, B, height, width, pts.device)
+    return _distance_mask_impl(pts, priority, valid, float(radius), mask)
+
+
+def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
+                        mask: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+    """:func:`distance_mask` without input checks.
+
+    Args:
+        pts: ``(B, N, 2)`` float, pixels ``(x, y)``.
+        priority: ``(B, N)`` (track counts), larger first.
+        valid: ``(B, N)`` bool.
+        radius: disc radius in pixels, >= 0.
+        mask: ``(B, H, W)`` uint8, the base mask (255 = free); written into and returned (pass a
+            copy to keep it).
+
+    Returns:
+        ``keep (B, N)`` bool and ``mask``, as :func:`distance_mask`.
+    """
+    B, N, _ = pts.shape
     H, W = mask.shape[-2:]
     dev = pts.device
     if N == 0:
@@ -131,7 +150,7 @@ def distance_mask(
     # [j, i] layout of _resolve_rounds (cover is symmetric)
     dx = rx[:, :, None] - rx[:, None, :]
     dy = ry[:, :, None] - ry[:, None, :]
-    cover = (dx * dx + dy * dy).double() <= float(radius) ** 2
+    cover = (dx * dx + dy * dy).double() <= radius ** 2
     higher = torch.ones(N, N, dtype=torch.bool, device=dev).triu(1)
     conf = cover & higher & eligible[:, :, None]
     keep_sorted = _resolve_rounds(conf.to(torch.float32), eligible)
@@ -143,7 +162,7 @@ def distance_mask(
     # at every span's ends in a per-row difference buffer and one cumsum along x give the cover
     # count of every pixel: O(B * N * r) scatter work plus a few image-sized passes, instead of
     # O(B * N * r²) disc-offset indices.
-    mask = _clear_discs(mask, rx, ry, keep_sorted, float(radius))
+    mask = _clear_discs(mask, rx, ry, keep_sorted, radius)
     return keep, mask
 
 

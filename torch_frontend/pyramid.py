@@ -14,6 +14,11 @@ OpenCV facts reproduced here (spec §5.1):
 * Scharr derivatives (``calcSharrDeriv``): vertical ``[3 10 3]`` smoothing and horizontal
   ``[-1 0 1]`` difference for ``Ix`` (transposed for ``Iy``), BORDER_REFLECT_101, *not* normalised
   (a unit ramp gives 32) — the same values as ``cv2.Scharr(img, CV_16S, 1, 0)``.
+
+The in-place fast forms (no autograd) perform the reference forms' operations in the same order
+(``_tuning.inplace_ok``), so a float pyramid has the same values with and without gradients.
+:func:`build_pyramid` checks its input and calls :func:`_build_pyramid_impl`, which a pipeline that
+validated once calls directly.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from typing import Dict, List, Tuple
 import torch
 import torch.nn.functional as F
 
+from . import _tuning
 from ._checks import as_float_image, as_image_batch
 from .errors import ConfigError
 
@@ -59,15 +65,13 @@ def pad_reflect101(x: torch.Tensor, pad_h: int, pad_w: int) -> torch.Tensor:
 
 def _tap5(x: torch.Tensor, dim: int, n_out: int) -> torch.Tensor:
     """``[1 4 6 4 1]`` along ``dim`` evaluated at every second position: ``out[i] = x[2i] + 4 x[2i+1] +
-    6 x[2i+2] + 4 x[2i+3] + x[2i+4]`` (``x`` already padded by 2), ``n_out`` outputs."""
+    6 x[2i+2] + 4 x[2i+3] + x[2i+4]`` (``x`` already padded by 2), ``n_out`` outputs, summed as
+    ``(((a + e) + 4 b) + 4 d) + 6 c`` (``add`` with ``alpha``: a fused multiply-add on CPU)."""
     a, b, c, d, e = (x.narrow(dim, k, 2 * n_out - 1)[(slice(None),) * (dim % x.dim()) + (slice(None, None, 2),)]
                      for k in range(5))
-    if x.requires_grad:
-        return (a + e) + (b + d) * 4.0 + c * 6.0
-    # in place: 3 fewer full-size temporaries
-    out = torch.add(a, e)
-    out.add_(b, alpha=4.0).add_(d, alpha=4.0).add_(c, alpha=6.0)
-    return out
+    if _tuning.inplace_ok(x):  # the same operations in place: 3 fewer full-size temporaries
+        return torch.add(a, e).add_(b, alpha=4.0).add_(d, alpha=4.0).add_(c, alpha=6.0)
+    return torch.add(torch.add(torch.add(a + e, b, alpha=4.0), d, alpha=4.0), c, alpha=6.0)
 
 
 def _pyr_down_impl(img: torch.Tensor) -> torch.Tensor:
@@ -100,19 +104,20 @@ def pyr_down(img: torch.Tensor) -> torch.Tensor:
 
 
 def _scharr_impl(img: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` float -> ``(B, 2, H, W)`` Scharr ``(Ix, Iy)`` (see :func:`scharr_gradients`)."""
     # separable, on shifted slices of the padded image (about 2x faster than a 1-channel conv2d):
     # Ix = [-1 0 1] along x of the [3 10 3] smoothing along y; Iy the transpose. Integer taps: exact
     # on integer grey levels whatever the order of the additions.
     H, W = img.shape[-2:]
     P = pad_reflect101(img, 1, 1)
     up, mid, down = P[..., 0:H, :], P[..., 1:H + 1, :], P[..., 2:H + 2, :]
-    if img.requires_grad:
-        s = (up + down) * 3.0 + mid * 10.0
+    if not _tuning.inplace_ok(img):
+        s = torch.add((up + down) * 3.0, mid, alpha=10.0)
         d = down - up
         ix = s[..., 2:] - s[..., :-2]
-        iy = (d[..., :-2] + d[..., 2:]) * 3.0 + d[..., 1:-1] * 10.0
+        iy = torch.add((d[..., :-2] + d[..., 2:]) * 3.0, d[..., 1:-1], alpha=10.0)
         return torch.cat([ix, iy], dim=1)
-    # no autograd: write both channels straight into the output, in place (no cat, fewer passes)
+    # fast form: the same operations, both channels written straight into the output (no cat)
     out = img.new_empty(img.shape[:-3] + (2, H, W))
     ix, iy = out[..., 0:1, :, :], out[..., 1:2, :, :]
     s = torch.add(up, down).mul_(3.0).add_(mid, alpha=10.0)
@@ -137,12 +142,6 @@ def scharr_gradients(img: torch.Tensor) -> torch.Tensor:
         BORDER_REFLECT_101 at the image edge (same as ``cv2.Scharr``'s default and ``calcSharrDeriv``).
     """
     return _scharr_impl(as_float_image(img, "img"))
-
-
-# build_pyramid on CPU: batches above _BATCH_PIXELS pixels (~46 frames of 752x480) are built in
-# groups of _BLOCK_PIXELS pixels (one frame)
-_BLOCK_PIXELS = 1 << 19
-_BATCH_PIXELS = 1 << 24
 
 
 @dataclass
@@ -188,14 +187,15 @@ class Pyramid:
     def padded(self, level: int, pad_h: int, pad_w: int, dtype: torch.dtype | None = None) -> torch.Tensor:
         """Level ``level`` as ``dtype`` padded by ``pad_h`` rows / ``pad_w`` columns on each side with
         BORDER_REFLECT_101 (as ``buildOpticalFlowPyramid`` stores its levels), ``(B, 1, H + 2 pad_h,
-        W + 2 pad_w)``. Cached on the pyramid unless the level needs a gradient."""
+        W + 2 pad_w)``. Cached on the pyramid unless the level needs a gradient (a copy padded under
+        ``torch.no_grad`` would otherwise cut the gradient of a later call)."""
         t = self.levels[level]
         dtype = t.dtype if dtype is None else dtype
         key = (level, pad_h, pad_w, dtype)
         out = self._padded.get(key)
         if out is None:
             out = pad_reflect101(t.to(dtype), pad_h, pad_w)
-            if not out.requires_grad:
+            if not t.requires_grad:
                 self._padded[key] = out
         return out
 
@@ -239,32 +239,46 @@ def build_pyramid(
     Convention:
         Unlike OpenCV the levels are stored without the ``win_size`` border; the LK pads them itself
         once (BORDER_REFLECT_101, cached: :meth:`Pyramid.padded`) and treats derivatives outside the
-        image as zeros, as ``calcOpticalFlowPyrLK``. OpenCV
-        also stops building when a level would be <= ``win_size``; LK applies that cap for its own
-        ``win_size``, so here all requested levels are built.
+        image as zeros, as ``calcOpticalFlowPyrLK``. OpenCV also stops building when a level would
+        be <= ``win_size``; LK applies that cap for its own ``win_size``, so here all requested
+        levels are built.
     """
     if not isinstance(max_level, int) or max_level < 0:
         raise ConfigError(f"max_level must be an int >= 0, got {max_level!r}")
     raw = as_image_batch(img, "img")
     if round_levels is None:
         round_levels = raw.dtype == torch.uint8
-    B, _, H, W = raw.shape
-    per = max(1, _BLOCK_PIXELS // max(H * W, 1))
-    if raw.device.type == "cpu" and B > per and B * H * W > _BATCH_PIXELS and not raw.requires_grad:
-        # large batches by groups of streams, so that each group's temporaries stay in cache:
-        # measured at 752x480, 1 thread, ms per image: B = 64 2.9 grouped vs 4.4 whole; at B <= 16
-        # the whole batch is as fast or faster (the final concatenation costs a copy)
-        parts = [build_pyramid(raw[b0:b0 + per], max_level, with_gradients, round_levels) for b0 in range(0, B, per)]
+    return _build_pyramid_impl(raw, max_level, bool(with_gradients), bool(round_levels))
+
+
+def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool, round_levels: bool) -> Pyramid:
+    """:func:`build_pyramid` without input checks.
+
+    Args:
+        img: ``(B, 1, H, W)`` uint8 or float grey levels 0..255 (uint8 is converted to float32).
+        max_level: last level index, >= 0.
+        with_gradients: also the Scharr ``(Ix, Iy)`` of every level.
+        round_levels: round every level half up (OpenCV's 8-bit pyramid).
+
+    On the CPU a large batch without autograd is built in groups of streams
+    (``_tuning.Strategy.pyramid_streams``), so that each group's temporaries stay in cache; the
+    levels are the same as in one pass.
+    """
+    B, _, H, W = img.shape
+    per = _tuning.for_device(img.device).pyramid_streams(B, H, W)
+    if per is not None and not img.requires_grad:
+        parts = [_build_pyramid_impl(img[b0:b0 + per], max_level, with_gradients, round_levels)
+                 for b0 in range(0, B, per)]
         levels = [torch.cat([p.levels[k] for p in parts]) for k in range(max_level + 1)]
         grads = [torch.cat([p.grads[k] for p in parts]) for k in range(max_level + 1)] if with_gradients else None
-        return Pyramid(levels, grads, bool(round_levels))
-    level = as_float_image(raw, "img")
+        return Pyramid(levels, grads, round_levels)
+    level = img if img.is_floating_point() else img.to(torch.float32)
     levels = [level]
     for _ in range(max_level):
         level = _pyr_down_impl(level)
         if round_levels:
             # OpenCV: (sum + 128) >> 8, i.e. round half up; values are exact multiples of 1/256.
-            level = torch.floor(level + 0.5) if level.requires_grad else level.add_(0.5).floor_()
+            level = level.add_(0.5).floor_() if _tuning.inplace_ok(level) else torch.floor(level + 0.5)
         levels.append(level)
     grads = [_scharr_impl(t) for t in levels] if with_gradients else None
-    return Pyramid(levels, grads, bool(round_levels))
+    return Pyramid(levels, grads, round_levels)

@@ -4,7 +4,7 @@ Models: ``PinholeCamera`` (``PINHOLE``), ``PinholeFullCamera`` (``PINHOLE_FULL``
 (``MEI``), ``KannalaBrandtCamera`` (``KANNALA_BRANDT``), ``ScaramuzzaCamera`` (``scaramuzza``); all
 derive from ``CameraModel`` (``lift``, ``project``, ``undistort``, ``params_dict``, ``from_params``).
 ``camera_from_config`` builds one from a camodocal/VINS YAML parsed by
-``torch_frontend.io.read_opencv_yaml``. See ``base.py`` for the shared conventions.
+``torch_frontend.opencv_yaml.read_opencv_yaml``. See ``base.py`` for the shared conventions.
 """
 
 from .base import CameraModel

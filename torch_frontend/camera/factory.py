@@ -20,6 +20,7 @@ from typing import Any, Dict, Mapping, Union
 import torch
 
 from ..errors import ConfigError
+from ..opencv_yaml import read_opencv_yaml
 from .base import CameraModel
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
@@ -90,7 +91,7 @@ def camera_from_config(
     """Camera model from a parsed camodocal camera YAML / VINS-Mono config.
 
     Args:
-        node: the dict ``torch_frontend.io.read_opencv_yaml(path)`` returns (top-level keys
+        node: the dict ``torch_frontend.opencv_yaml.read_opencv_yaml(path)`` returns (top-level keys
             ``model_type``, ``camera_name``, ``image_width``, ``image_height`` and the nested parameter
             maps of §1.6), or a path, which is then read with ``read_opencv_yaml``.
         path: file the node came from; only used in error messages.
@@ -106,8 +107,6 @@ def camera_from_config(
             value of the wrong type, or an unknown ``model_type`` (the message lists the known ones).
     """
     if isinstance(node, (str, os.PathLike)):
-        from ..io import read_opencv_yaml
-
         path = node if path is None else path
         node = read_opencv_yaml(node)
     if not isinstance(node, Mapping):

@@ -7,11 +7,8 @@ Convention:
     ``data.csv``). Rows are kept in file order (VINS sees them in that order; the tracker
     handles time going backwards as a restart).
 
-    ``sensor.yaml`` (Kalibr/ASL format) gives ``resolution: [W, H]``, ``intrinsics: [fu, fv, cu,
-    cv]`` and ``distortion_model`` + ``distortion_coefficients``: ``radial-tangential`` ``[k1, k2,
-    p1, p2]`` → ``PinholeCamera``; ``equidistant`` ``[k1..k4]`` (TUM-VI) → ``KannalaBrandtCamera``
-    with camodocal ``k2..k5 = k1..k4``. ``config_from_sensor_yaml`` wraps it in a ``TrackerConfig``
-    with VINS's EuRoC front-end settings, for runs without a VINS config file.
+    The camera folder's ``sensor.yaml`` (Kalibr/ASL format) gives the camera for runs without a
+    VINS config file: ``euroc_config`` reads it with ``torch_frontend.config.config_from_sensor_yaml``.
 """
 
 from __future__ import annotations
@@ -19,14 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterator, List, Tuple, Union
 
-from ..errors import ConfigError
+from ..config import TrackerConfig, config_from_sensor_yaml
 from .frames import DataError, Sequence, _Item, read_image
-from .fsyaml import read_opencv_yaml
 
 PathLike = Union[str, Path]
-
-# VINS-Mono's euroc_config.yaml front-end values, used when only sensor.yaml is given.
-DEFAULT_FRONTEND = dict(max_cnt=150, min_dist=30, freq=10, F_threshold=1.0, equalize=True, fisheye=False)
 
 
 def find_camera_dir(root: PathLike, camera: str = "cam0") -> Path:
@@ -99,68 +92,9 @@ class EurocSequence(Sequence):
         return self.camera_dir / "sensor.yaml"
 
 
-def _numbers(raw: dict, key: str, n: int, path: Path) -> List[float]:
-    v = raw.get(key)
-    try:
-        vals = [float(x) for x in v]
-    except TypeError:
-        raise ConfigError(f"expected a list of {n} numbers, got {v!r}", path, key) from None
-    except ValueError:
-        raise ConfigError(f"expected numbers, got {v!r}", path, key) from None
-    if len(vals) != n:
-        raise ConfigError(f"expected {n} numbers, got {len(vals)}", path, key)
-    return vals
-
-
-def camera_from_sensor_yaml(path: PathLike):
-    """Camera model of an ASL ``sensor.yaml`` (see the module docstring).
-
-    Raises:
-        ConfigError: missing file or key, wrong list length, unsupported camera or distortion model.
-    """
-    from ..camera import KannalaBrandtCamera, PinholeCamera
-
-    p = Path(path)
-    raw = read_opencv_yaml(p)
-    model = str(raw.get("camera_model", "pinhole")).lower()
-    if model != "pinhole":
-        raise ConfigError(f"unsupported camera_model {model!r} (expected 'pinhole')", p, "camera_model")
-    w, h = (int(x) for x in _numbers(raw, "resolution", 2, p))
-    fu, fv, cu, cv = _numbers(raw, "intrinsics", 4, p)
-    dist = str(raw.get("distortion_model", "radial-tangential")).lower()
-    name = str(raw.get("comment", p.parent.name))
-    if dist in ("radial-tangential", "radtan", "plumb_bob"):
-        k1, k2, p1, p2 = _numbers(raw, "distortion_coefficients", 4, p)
-        return PinholeCamera(k1, k2, p1, p2, fu, fv, cu, cv, width=w, height=h, camera_name=name)
-    if dist in ("equidistant", "fisheye"):
-        k1, k2, k3, k4 = _numbers(raw, "distortion_coefficients", 4, p)
-        return KannalaBrandtCamera(k1, k2, k3, k4, fu, fv, cu, cv, width=w, height=h, camera_name=name)
-    raise ConfigError(
-        f"unsupported distortion_model {dist!r} (expected 'radial-tangential' or 'equidistant')", p, "distortion_model"
-    )
-
-
-def config_from_sensor_yaml(path: PathLike, **overrides):
-    """A ``TrackerConfig`` from an ASL ``sensor.yaml``: its camera and size, and VINS-Mono's EuRoC
-    front-end settings (``max_cnt 150, min_dist 30, freq 10, F_threshold 1, equalize 1``) unless
-    overridden by keyword."""
-    from ..config import TrackerConfig
-
-    cam = camera_from_sensor_yaml(path)
-    settings = dict(DEFAULT_FRONTEND)
-    settings.update(overrides)
-    return TrackerConfig(
-        path=str(path),
-        flavour="mono",
-        image_width=int(cam.width),
-        image_height=int(cam.height),
-        camera=cam,
-        **settings,
-    )
-
-
-def euroc_config(root: PathLike, camera: str = "cam0", **overrides):
-    """``config_from_sensor_yaml`` of the ``sensor.yaml`` of an ASL folder's camera."""
+def euroc_config(root: PathLike, camera: str = "cam0", **overrides) -> TrackerConfig:
+    """``config_from_sensor_yaml`` of the ``sensor.yaml`` of an ASL folder's camera (``root`` as
+    for ``EurocSequence``; ``overrides``: ``TrackerConfig`` fields)."""
     d = find_camera_dir(root, camera)
     y = d / "sensor.yaml"
     if not y.is_file():
@@ -168,16 +102,8 @@ def euroc_config(root: PathLike, camera: str = "cam0", **overrides):
     return config_from_sensor_yaml(y, **overrides)
 
 
-def euroc_camera(root: PathLike, camera: str = "cam0"):
-    """The camera model of an ASL folder's ``sensor.yaml``."""
-    return euroc_config(root, camera).camera
-
-
 __all__ = [
     "EurocSequence",
-    "camera_from_sensor_yaml",
-    "config_from_sensor_yaml",
-    "euroc_camera",
     "euroc_config",
     "find_camera_dir",
 ]

@@ -63,14 +63,14 @@ class ImageFolderSequence(Sequence):
             raise DataError(f"{d}: empty sequence (no {'/'.join(s[1:] for s in IMAGE_SUFFIXES)} images)")
         if fps is not None:
             if not fps > 0:
-                raise DataError(f"--fps must be > 0, got {fps}")
+                raise DataError(f"fps: expected a frame rate > 0 (Hz), got {fps}")
             stamps = [round(i * 1e9 / fps) for i in range(len(files))]
         else:
             stamps = _stamps_from_names(files)
             if stamps is None:
                 raise DataError(
                     f"{d}: cannot take timestamps from names like {files[0].name!r} (need nanoseconds, "
-                    f"e.g. 1403715273262142976.png, or seconds, e.g. 1305031102.175304.png); give --fps"
+                    f"e.g. 1403715273262142976.png, or seconds, e.g. 1305031102.175304.png); give a frame rate (fps)"
                 )
             order = sorted(range(len(files)), key=lambda i: (stamps[i], files[i].name))
             files = [files[i] for i in order]

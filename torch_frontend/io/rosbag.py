@@ -98,7 +98,7 @@ class RosbagSequence(Sequence):
             if not conns:
                 images = sorted({c.topic for c in reader.connections if c.msgtype in IMAGE_TYPES})
                 hint = f"image topics in the bag: {', '.join(images)}" if images else "the bag has no image topics"
-                raise DataError(f"{self.path}: no topic {topic!r} ({hint}); choose one with --topic")
+                raise DataError(f"{self.path}: no topic {topic!r} ({hint})")
             bad = [c.msgtype for c in conns if c.msgtype not in IMAGE_TYPES]
             if bad:
                 raise DataError(f"{self.path}: topic {topic!r} has type {bad[0]}, expected sensor_msgs/Image "

@@ -31,7 +31,7 @@ def open_sequence(kind: str, path: PathLike, *, camera: str = "cam0", fps: float
         from .rosbag import RosbagSequence
 
         if not topic:
-            raise DataError(f"{path}: no image topic given (the config has no image_topic; use --topic)")
+            raise DataError(f"{path}: no image topic given (and the config has no image_topic)")
         return RosbagSequence(path, topic, skip_bad=skip_bad)
     raise DataError(f"unknown input kind {kind!r} (expected one of {', '.join(KINDS)})")
 

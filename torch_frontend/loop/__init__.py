@@ -8,10 +8,12 @@ Part 2, verification and the pose graph: ``KeyFrame`` and ``match_brief`` (VINS'
 ``searchByBRIEFDes``), ``pnp_ransac`` (batched P3P RANSAC + differentiable refinement, or
 ``cv2.solvePnPRansac``), ``PoseGraph`` (sequences, merge, drift, save/load in VINS's format) over
 the pure optimisers ``optimize_4dof`` / ``optimize_6dof``; ``triangulate_points`` for keyframes
-built from tracks and poses; ``render_loop_sequence`` renders a revisiting test sequence.
+built from tracks and poses. The rendered revisiting test sequence (``render_loop_sequence``) is in
+``torch_frontend.testing``.
 
-Part 3, what users run: ``run_loop`` (front end -> keyframes -> place recognition -> pose graph ->
-outputs, as ``torch-frontend loop``) and ``demo_loop`` (``torch-frontend demo --loop``).
+Part 3, the outputs of a run: ``write_loop_outputs`` (``report``). The run itself (front end ->
+keyframes -> place recognition -> pose graph -> outputs, as ``torch-frontend loop``) is
+``torch_frontend.pipelines.loop.run_loop``, the demo ``pipelines.loop.demo_loop``.
 
 Names are imported lazily, so ``import torch_frontend.loop`` stays cheap.
 """
@@ -49,21 +51,15 @@ _EXPORTS = {
     "measurements_6dof": "optimize",
     "camera_poses": "triangulate",
     "triangulate_points": "triangulate",
-    "SyntheticSequence": "synthetic",
-    "make_keyframes": "synthetic",
-    "render_loop_sequence": "synthetic",
-    "R_to_quat": "geometry",
-    "R_to_ypr": "geometry",
-    "normalize_angle": "geometry",
-    "quat_to_R": "geometry",
-    "rodrigues": "geometry",
-    "rodrigues_inverse": "geometry",
-    "wrap_angle_once": "geometry",
-    "yaw_to_R": "geometry",
-    "ypr_to_R": "geometry",
-    "LoopRun": "run",
-    "demo_loop": "run",
-    "run_loop": "run",
+    "R_to_quat": ".geometry",
+    "R_to_ypr": ".geometry",
+    "normalize_angle": ".geometry",
+    "quat_to_R": ".geometry",
+    "rodrigues": ".geometry",
+    "rodrigues_inverse": ".geometry",
+    "wrap_angle_once": ".geometry",
+    "yaw_to_R": ".geometry",
+    "ypr_to_R": ".geometry",
     "write_loop_outputs": "report",
 }
 

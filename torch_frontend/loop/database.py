@@ -28,8 +28,8 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from torch_frontend.errors import ConfigError
-from torch_frontend.loop.vocabulary import L1_NORM, BowVector, Vocabulary
+from ..errors import ConfigError
+from .vocabulary import L1_NORM, BowVector, Vocabulary
 
 __all__ = ["PlaceDatabase"]
 

@@ -353,7 +353,7 @@ def load_brief_pattern(path: Union[str, Path]) -> torch.Tensor:
         ConfigError: unreadable file, missing key, unequal lengths, non-integers, or a length
             that is not a positive multiple of 64.
     """
-    from ..io.fsyaml import read_opencv_yaml
+    from ..opencv_yaml import read_opencv_yaml
 
     p = Path(path)
     try:

@@ -42,7 +42,11 @@ from typing import Dict, Tuple
 import torch
 
 from ..errors import DataError
-from .geometry import R_to_ypr, quat_to_R, wrap_angle_once, ypr_to_R
+from ..geometry import R_to_ypr, quat_to_R, wrap_angle_once, ypr_to_R
+from ..geometry import quat_conj as _qconj
+from ..geometry import quat_exp as _quat_exp
+from ..geometry import quat_mul as _qmul
+from ..geometry import skew as _skew
 
 __all__ = [
     "measurements_4dof",
@@ -63,37 +67,6 @@ SOLVERS = ("auto", "dense", "banded", "lapack_banded", "splu")
 # --------------------------------------------------------------------------------------------
 # small helpers
 # --------------------------------------------------------------------------------------------
-
-def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product of w-first quaternions ``(..., 4)``."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], -1)
-
-
-def _qconj(q: torch.Tensor) -> torch.Tensor:
-    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*v.shape[:-1], 3, 3)
-
-
-def _quat_exp(d: torch.Tensor) -> torch.Tensor:
-    """Ceres ``QuaternionParameterization`` delta: ``(cos|d|, sin|d| d/|d|)`` (a rotation by
-    ``2|d|``); the zero step maps to the identity (no 0/0)."""
-    n = d.norm(dim=-1, keepdim=True)
-    small = n < 1e-12
-    ns = torch.where(small, torch.ones_like(n), n)
-    return torch.cat([torch.cos(n), torch.where(small, d, torch.sin(ns) / ns * d)], -1)
-
 
 def _huber(s: torch.Tensor, loop: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     """Ceres HuberLoss(0.1) on loop edges, identity on the others: ``(ρ(s), ρ'(s))``.

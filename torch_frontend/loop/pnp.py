@@ -42,8 +42,8 @@ import torch
 
 from .._checks import check_shape, valid_first_order
 from ..errors import DataError
+from ..geometry import R_to_quat, quat_to_R, rodrigues
 from ..ransac import _solve_cubic, ransac_update_num_iters
-from .geometry import R_to_quat, quat_to_R, rodrigues
 
 __all__ = ["PnPResult", "p3p", "pnp_ransac", "refine_pnp"]
 

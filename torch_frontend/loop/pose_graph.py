@@ -38,9 +38,8 @@ from typing import Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from torch_frontend.errors import DataError
-from torch_frontend.loop.database import PlaceDatabase
-from torch_frontend.loop.geometry import (
+from ..errors import DataError
+from ..geometry import (
     R_to_quat,
     R_to_ypr,
     normalize_angle,
@@ -48,15 +47,16 @@ from torch_frontend.loop.geometry import (
     yaw_to_R,
     ypr_to_R,
 )
-from torch_frontend.loop.keyframe import KeyFrame, match_brief
-from torch_frontend.loop.vocabulary import Vocabulary
+from .database import PlaceDatabase
+from .keyframe import KeyFrame, match_brief
+from .vocabulary import Vocabulary
 
 __all__ = ["LoopResult", "PoseGraph", "verify_loops"]
 
 PathLike = Union[str, Path]
 _F64 = torch.float64
 
-# VINS's constants (§7.5, §7.6)
+# VINS's loop-acceptance constants (§7.6, also listed in §2)
 MIN_LOOP_MATCHES = 25  # "count > 25" before and after PnP
 MAX_LOOP_YAW = 30.0  # degrees
 MAX_LOOP_T = 20.0  # metres
@@ -128,7 +128,7 @@ def verify_loops(
     Returns:
         B :class:`LoopResult` (``index``/``old_index`` from the keyframes).
     """
-    from torch_frontend.loop.pnp import pnp_ransac
+    from .pnp import pnp_ransac
 
     B = len(curs)
     if B != len(olds):
@@ -407,7 +407,7 @@ class PoseGraph:
         """
         import time
 
-        from torch_frontend.loop import optimize as opt
+        from . import optimize as opt
 
         if not self._pending:
             return False
@@ -498,8 +498,8 @@ class PoseGraph:
             torch.stack([getattr(k, b).to(_F64) for k in self.keyframes])
 
     def trajectory(self, which: str = "corrected"):
-        """The keyframe poses as a :class:`torch_frontend.io.trajectory.Trajectory`."""
-        from torch_frontend.io.trajectory import Trajectory
+        """The keyframe poses as a :class:`torch_frontend.trajectory.Trajectory`."""
+        from ..trajectory import Trajectory
 
         t, T, R = self.poses(which)
         return Trajectory(t, T, R_to_quat(R) if R.shape[0] else torch.zeros(0, 4, dtype=_F64))
@@ -517,7 +517,7 @@ class PoseGraph:
 
     def write_csv(self, path: PathLike) -> Path:
         """Write ``vins_result_loop.csv`` atomically."""
-        from torch_frontend.outputs import write_text_atomic
+        from .._atomic import write_text_atomic
 
         path = Path(path)
         write_text_atomic(path, self.csv_text())
@@ -528,7 +528,7 @@ class PoseGraph:
         """Save in VINS's format (§7.11): ``pose_graph.txt``, ``<i>_keypoints.txt``,
         ``<i>_briefdes.dat`` (and ``<i>_image.png`` for kept images). Written into a temporary
         folder that replaces ``directory`` only when complete."""
-        from torch_frontend.outputs import replace_dir
+        from .._atomic import replace_dir
 
         final = Path(directory)
         if not final.parent.exists():

@@ -2,8 +2,8 @@
 the pose graph, ``summary.json`` and two plots, all written atomically into the output folder.
 
 Convention:
-    ``write_loop_outputs(out, run)`` takes the ``LoopRun`` of :func:`torch_frontend.loop.run.run_loop`
-    and writes, into ``out`` (created):
+    ``write_loop_outputs(out, run)`` takes the ``LoopRun`` of
+    :func:`torch_frontend.pipelines.loop.run_loop` and writes, into ``out`` (created):
 
     * per stream (at the top of ``out`` for one stream, in ``out/stream<b>/`` for several):
       ``vins_result_loop.csv`` (VINS format, spec §7.11: ``time·1e9`` then ``P.x P.y P.z Q.w Q.x Q.y
@@ -18,7 +18,7 @@ Convention:
       relative pose (current body in the old body frame: ``tx ty tz`` m, ``qw qx qy qz``,
       ``yaw_deg``; zeros / identity when PnP did not run).
     * the pose graph in VINS's format (``PoseGraph.save``): ``pose_graph/`` for one graph, or
-      ``stream<b>/pose_graph/`` per stream with ``--separate-graphs``.
+      ``stream<b>/pose_graph/`` per stream with ``separate_graphs``.
     * ``summary.json`` (the ``run.summary`` dict; ``ate_before``/``ate_after`` in metres at the top
       level when ground truth was given).
     * ``trajectory_top.png``: top view (x, y) before (VIO) and after loop closure, with the loop
@@ -41,7 +41,7 @@ from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from ..outputs import write_bytes_atomic, write_text_atomic
+from .._atomic import write_bytes_atomic, write_text_atomic
 
 __all__ = [
     "LOOP_COLUMNS",
@@ -118,7 +118,7 @@ def _pairs(traj, gt):
     """Associated ``(est (K, 3), ref (K, 3))`` positions of ``traj`` and ``gt``, or None."""
     if gt is None or traj.t.shape[0] < 3:
         return None
-    from ..io.trajectory import associate
+    from ..trajectory import associate
 
     ie, ir = associate(traj.time, gt.time)
     if ie.numel() < 3:
@@ -130,7 +130,7 @@ def _alignments(run, key: str) -> Dict[int, Optional[tuple]]:
     """Per stream, the SE(3) ``(R, t)`` that moves its ``key`` (``"before"``: VIO, ``"after"``:
     corrected) positions onto the ground truth (Umeyama, as the ATE), or None without one. A shared
     map of several streams gets ONE alignment for all of them (its streams share one world)."""
-    from ..io.trajectory import align_se3
+    from ..trajectory import align_se3
 
     pairs = {s.stream: _pairs(s.vio if key == "before" else s.corrected, s.ground_truth) for s in run.streams}
     shared = len(run.graphs) == 1 and len(run.streams) > 1
@@ -279,7 +279,7 @@ def _json_safe(v: Any) -> Any:
 
 def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True) -> List[Path]:
     """Write every output of ``run`` (a ``LoopRun``) into ``out``; returns the written paths."""
-    from ..io.trajectory import write_tum, write_vins_csv
+    from ..trajectory import write_tum, write_vins_csv
 
     t_all = time.perf_counter()
     out = Path(out)

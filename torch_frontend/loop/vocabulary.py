@@ -51,8 +51,8 @@ from typing import NamedTuple, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from torch_frontend.errors import ConfigError
-from torch_frontend.loop.features import _unpack_bits
+from ..errors import ConfigError
+from .features import _unpack_bits
 
 __all__ = [
     "BowVector",
@@ -707,7 +707,7 @@ class Vocabulary:
 
 def _atomic_write(path: Path, write) -> None:
     """Write via a temp file in the same folder, then rename (never a half-written file)."""
-    from ..outputs import atomic_path
+    from .._atomic import atomic_path
 
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as f:
         write(f)

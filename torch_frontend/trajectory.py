@@ -1,4 +1,5 @@
-"""Trajectory files (TUM, VINS CSV, EuRoC ground truth), interpolation, alignment and ATE.
+"""Trajectory files (TUM, VINS CSV, EuRoC ground truth), interpolation, association, SE(3)/Sim(3)
+alignment, ATE and synthetic VIO drift.
 
 Convention:
     * A ``Trajectory`` holds N poses of the body (IMU) frame in the world frame, body-to-world as
@@ -36,8 +37,9 @@ from typing import List, NamedTuple, Tuple, Union
 import numpy as np
 import torch
 
-from ..errors import DataError
-from ..outputs import write_text_atomic
+from ._atomic import write_text_atomic
+from .errors import DataError
+from .geometry import R_to_quat, quat_to_R, slerp, yaw_to_R
 
 PathLike = Union[str, Path]
 
@@ -72,8 +74,6 @@ class Trajectory(NamedTuple):
     @property
     def R(self) -> torch.Tensor:
         """``(N, 3, 3)`` rotation matrices ``R_w_i``."""
-        from ..loop.geometry import quat_to_R
-
         return quat_to_R(self.q)
 
 
@@ -206,17 +206,17 @@ def read_trajectory(path: PathLike, format: str = "auto", *, sort: bool = False)
 # writing
 
 
-def _check_traj(traj: Trajectory, name: str = "traj") -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_traj(traj: Trajectory) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     if not isinstance(traj, tuple) or len(tuple(traj)) != 3:
-        raise TypeError(f"{name}: expected a Trajectory (time, t, q)")
+        raise TypeError("traj: expected a Trajectory (time, t, q)")
     time, t, q = (torch.as_tensor(x).detach().to("cpu", torch.float64) for x in traj)
     N = time.shape[0] if time.ndim == 1 else -1
     if time.ndim != 1:
-        raise ValueError(f"{name}.time: expected shape (N,), got {tuple(time.shape)}")
+        raise ValueError(f"traj.time: expected shape (N,), got {tuple(time.shape)}")
     if tuple(t.shape) != (N, 3):
-        raise ValueError(f"{name}.t: expected shape ({N}, 3), got {tuple(t.shape)}")
+        raise ValueError(f"traj.t: expected shape ({N}, 3), got {tuple(t.shape)}")
     if tuple(q.shape) != (N, 4):
-        raise ValueError(f"{name}.q: expected shape ({N}, 4), got {tuple(q.shape)}")
+        raise ValueError(f"traj.q: expected shape ({N}, 4), got {tuple(q.shape)}")
     return time.numpy(), t.numpy(), q.numpy()
 
 
@@ -256,23 +256,6 @@ def write_vins_csv(path: PathLike, traj: Trajectory) -> None:
 
 # ----------------------------------------------------------------------------------------------
 # interpolation
-
-
-def _slerp(q0: torch.Tensor, q1: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """Shortest-arc slerp of ``(..., 4)`` unit quaternions, ``a`` in [0, 1] ``(...)``."""
-    d = (q0 * q1).sum(-1, keepdim=True)
-    q1 = torch.where(d < 0, -q1, q1)  # q and -q are the same rotation: take the short way
-    d = d.abs().clamp(max=1.0)
-    th = torch.acos(d)
-    s = torch.sin(th)
-    small = s < 1e-9
-    s_safe = torch.where(small, torch.ones_like(s), s)
-    a = a[..., None]
-    w0 = torch.where(small, 1 - a, torch.sin((1 - a) * th) / s_safe)
-    w1 = torch.where(small, a, torch.sin(a * th) / s_safe)
-    out = w0 * q0 + w1 * q1
-    out = out / out.norm(dim=-1, keepdim=True)
-    return torch.where(out[..., :1] < 0, -out, out)
 
 
 def _brackets(time: torch.Tensor, qt: torch.Tensor, max_gap: float):
@@ -344,7 +327,7 @@ def interpolate(traj: Trajectory, times, max_gap: float = 0.1, name: str = "pose
     gap = t1 - t0
     a = ((qt - t0) / gap).clamp(0.0, 1.0)
     pos = t[i0] + a[:, None] * (t[i0 + 1] - t[i0])
-    rot = _slerp(q[i0], q[i0 + 1], a)
+    rot = slerp(q[i0], q[i0 + 1], a)
     return Trajectory(qt.clone(), pos, rot)
 
 
@@ -477,8 +460,6 @@ def add_drift(traj: Trajectory, yaw_deg_per_m: float = 0.1, trans_frac: float = 
 
         The first pose is unchanged. Returns a new ``Trajectory`` (same times).
     """
-    from ..loop.geometry import R_to_quat, quat_to_R, yaw_to_R
-
     time, p, q = (torch.as_tensor(x, dtype=torch.float64) for x in traj)
     if p.ndim != 2 or p.shape[1] != 3 or q.shape != (p.shape[0], 4):
         raise ValueError(f"traj: expected t (N, 3) and q (N, 4), got {tuple(p.shape)} and {tuple(q.shape)}")

@@ -1,7 +1,8 @@
 """OpenCV oracle of the VINS-Mono / VINS-Fusion KLT front end (numpy + cv2 only, no torch).
 
-A plain, sequential re-implementation of the behaviour described in ``docs/vins_spec.md``
-(``../shared/docs/vins_spec.md``): the Mono ``feature_tracker`` node (``img_callback`` timing
+``torch_frontend.testing.oracle`` (formerly ``benchmarks/vins_oracle.py``). A plain, sequential
+re-implementation of the behaviour described in the behaviour spec (``docs/spec.md``; "spec §N"
+below): the Mono ``feature_tracker`` node (``img_callback`` timing
 logic + ``readImage``, spec §3), the VINS-Fusion tracker (spec §6) and the camodocal
 ``liftProjective`` of the PINHOLE / MEI / KANNALA_BRANDT models (spec §4). It is built only from
 the spec and OpenCV calls; it is the *reference* the batched torch tracker is tested and
@@ -870,13 +871,14 @@ def cfg_from_vins_yaml(path) -> dict:
     return cfg
 
 
-if __name__ == "__main__":  # small demo on the repo's EuRoC sample
+if __name__ == "__main__":  # python -m torch_frontend.testing.oracle [VINS-Mono config]: the package's EuRoC sample
     import sys
 
-    root = Path(__file__).resolve().parents[1]
-    cam0 = sorted((root / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data").glob("*.png"))
-    cfg_path = Path(sys.argv[1]) if len(sys.argv) > 1 else (
-        root.parent / "shared" / "data" / "vins_configs" / "vins_mono" / "euroc" / "euroc_config.yaml")
+    from ._photo import PHOTO_DIR
+
+    cam0 = sorted(PHOTO_DIR.glob("*.png"))
+    # default: the source checkout's EuRoC config (configs/ is not installed with the package)
+    cfg_path = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[2] / "configs" / "euroc.yaml"
     cfg = cfg_from_vins_yaml(cfg_path)
     import time
 

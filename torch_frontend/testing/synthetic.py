@@ -1,5 +1,8 @@
 """A rendered revisiting sequence with exact poses and injected VIO drift: the pose graph's test bed.
 
+``torch_frontend.testing.synthetic`` (formerly ``torch_frontend.loop.synthetic``): it renders the
+sequence of ``torch-frontend demo --loop`` and of the loop-closure tests.
+
 A camera rig flies a smooth closed loop ``laps`` times inside a box-shaped room whose walls, floor
 and ceiling are textured with real photos; every image is ray cast in torch, so depth, 3-D points
 and poses are exact. The VIO poses are the true poses moved by a slowly accumulating drift
@@ -46,7 +49,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -55,9 +57,9 @@ import torch.nn.functional as F
 
 from .._checks import check_shape
 from ..camera import PinholeCamera
-from ..errors import ConfigError
-from .geometry import ypr_to_R
-from .keyframe import KeyFrame, _describe_impl
+from ..geometry import ypr_to_R
+from ..loop.keyframe import KeyFrame, _describe_impl
+from ._photo import package_photo
 
 __all__ = [
     "Room",
@@ -71,7 +73,6 @@ __all__ = [
 _F64 = torch.float64
 Tensor = torch.Tensor
 
-_DATA = Path(__file__).resolve().parents[1] / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 # camera looks along body +x: camera z -> body x, camera x (right) -> body -y, camera y (down) -> body -z
 R_IC_DEFAULT = ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
 T_IC_DEFAULT = (0.05, -0.02, 0.01)
@@ -93,13 +94,7 @@ def default_textures(clahe: Optional[float] = 3.0) -> List[np.ndarray]:
     """
     import cv2
 
-    frames = sorted(_DATA.glob("*.png"))
-    if not frames:
-        raise ConfigError("package photo missing (torch_frontend/data/euroc_mini)", path=_DATA)
-    img = cv2.imread(str(frames[0]), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise ConfigError("cannot read the package photo", path=frames[0])
-    c = np.ascontiguousarray(img[96:])
+    c = np.ascontiguousarray(package_photo()[96:])
     if clahe is not None:
         c = cv2.createCLAHE(float(clahe), (8, 8)).apply(c)
     variants = [c, c[:, ::-1], c[::-1, ::-1], c[::-1, :], c.T, c.T[::-1, ::-1]]

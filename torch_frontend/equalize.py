@@ -1,4 +1,5 @@
-"""CLAHE as OpenCV's ``cv2.createCLAHE(clip_limit, tile_grid_size).apply`` (8-bit), batched.
+"""VINS's ``equalize`` step: CLAHE as OpenCV's ``cv2.createCLAHE(clip_limit, tile_grid_size).apply``
+(8-bit), batched.
 
 Reproduces OpenCV's algorithm step by step (spec §5.3), in float32 where OpenCV uses float32, so
 that the output equals OpenCV's bit for bit on real images (measured: 100 % identical pixels on
@@ -19,6 +20,9 @@ kornia's ``enhance.equalize_clahe`` is not used: it spreads the clipped residual
 ``residual`` bins (not every ``s``-th bin), pads/tiles differently and works on 0..1 floats, which
 on a EuRoC frame gives max |diff| 2 grey levels and only 77.6 % identical pixels against OpenCV
 (measured with kornia 0.9.0), which misses the 99.9 % bar.
+
+The module is named for the VINS step so that no public name of the package equals a module name
+(``torch_frontend.clahe`` is the function, also after ``import torch_frontend.equalize``).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
+from . import _tuning
 from ._checks import as_image_batch
 from .errors import ConfigError
 
@@ -60,39 +65,39 @@ def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int,
     gx, gy = int(tile_grid_size[0]), int(tile_grid_size[1])
     if gx < 1 or gy < 1:
         raise ConfigError(f"tile_grid_size must be positive, got {tile_grid_size}")
+    check_grid(x.shape[-2], x.shape[-1], gx, gy)
     if x.dtype != torch.uint8:
         x = x.round().clamp(0, 255).to(torch.uint8)
     out = _clahe_impl(x[:, 0], float(clip_limit), gx, gy)
     return out if squeeze else out.unsqueeze(1)
 
 
-def _row_blocks(rows: int, width: int, device: torch.device):
-    """Row ranges of a ``(rows, width)`` pixel array processed together.
-
-    On CPU the work is blocked into ~``_BLOCK_PIXELS`` pixels: the float temporaries then stay in
-    cache and below glibc's mmap threshold (fresh multi-MB buffers are page-faulted in on every
-    call, which made B=8 ~2x slower per image than B=1). On other devices: one block.
-    """
-    if device.type != "cpu":
-        return [(0, rows)]
-    step = max(1, _BLOCK_PIXELS // max(width, 1))
-    return [(r, min(r + step, rows)) for r in range(0, rows, step)]
-
-
-# pixels per CPU block (see _row_blocks); measured on 752x480 EuRoC frames, 1 thread.
-_BLOCK_PIXELS = 1 << 17
+def check_grid(height: int, width: int, gx: int, gy: int) -> None:
+    """Raise ``ConfigError`` when an image of ``width x height`` is too small for the reflect-101
+    padding of a ``gx x gy`` tile grid (the check :func:`clahe` makes; a pipeline that calls
+    :func:`_clahe_impl` makes it once per image size)."""
+    if width % gx == 0 and height % gy == 0:
+        return
+    if gx - width % gx >= width or gy - height % gy >= height:
+        raise ConfigError(f"image {width}x{height} too small for CLAHE padding with grid {gx}x{gy}")
 
 
 def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
-    """``src``: (B, H, W) uint8 -> (B, H, W) uint8."""
+    """CLAHE of ``src`` ``(B, H, W)`` uint8 -> ``(B, H, W)`` uint8, no input checks.
+
+    ``clip_limit`` as OpenCV (``<= 0``: no clipping); ``gx, gy`` tiles along x / y (>= 1, the image
+    large enough for the padding: :func:`check_grid`).
+
+    On the CPU the per-pixel passes run on blocks of rows (``_tuning.Strategy.clahe_rows``): the
+    float temporaries then stay in cache and below glibc's mmap threshold. Elsewhere: one block.
+    """
     B, H, W = src.shape
     dev = src.device
+    rows = _tuning.for_device(dev).clahe_rows
     if W % gx == 0 and H % gy == 0:
         lut_src = src
     else:
         pad_x, pad_y = gx - W % gx, gy - H % gy
-        if pad_x >= W or pad_y >= H:
-            raise ConfigError(f"image {W}x{H} too small for CLAHE padding with grid {gx}x{gy}")
         # reflect-101 == torch 'reflect'; pad works on floats only (values stay exact integers).
         lut_src = F.pad(src[:, None].float(), (0, pad_x, 0, pad_y), mode="reflect")[:, 0].to(torch.uint8)
     Hs, Ws = lut_src.shape[-2:]
@@ -107,7 +112,7 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch
     hist = torch.zeros(B * T * 256, dtype=torch.int64, device=dev)
     hs2 = lut_src.reshape(B * Hs, Ws)
     hk2 = geo.hist_key.view(B * Hs, Ws)
-    for r0, r1 in _row_blocks(B * Hs, Ws, dev):
+    for r0, r1 in rows(B * Hs, Ws):
         # keys of these rows lie in [lo, hi): count only that range (a histogram of the whole batch
         # per block made the work grow with B^2)
         lo, hi = (r0 // Hs) * T * 256, ((r1 - 1) // Hs + 1) * T * 256
@@ -147,7 +152,7 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch
     ck2 = geo.cell_key.view(B * H, W)
     out = torch.empty(B * H, W, dtype=torch.uint8, device=dev)
     little = sys.byteorder == "little"
-    for r0, r1 in _row_blocks(B * H, W, dev):
+    for r0, r1 in rows(B * H, W):
         idx = s2[r0:r1].int().add_(ck2[r0:r1]).view(-1)  # int32 (uint8 + int32 in one op is ~2x slower)
         n = r1 - r0
         q = packed.index_select(0, idx)

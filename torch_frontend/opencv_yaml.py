@@ -5,6 +5,8 @@ rejects it), matrices are tagged ``!!opencv-matrix`` with ``rows``/``cols``/``dt
 OpenCV reads ``1e-3`` as a number where PyYAML's YAML 1.1 resolver reads a string. This module
 strips the header, turns matrices into numpy arrays of the right shape and dtype, and coerces
 number-like strings.
+
+A foundation module (numpy and PyYAML only): ``config`` and ``camera`` read their files with it.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any, Dict, Union
 import numpy as np
 import yaml
 
-from ..errors import ConfigError
+from .errors import ConfigError
 
 _DT = {"d": np.float64, "f": np.float32, "i": np.int32, "u": np.uint8, "s": np.int16, "w": np.uint16, "c": np.int8}
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")

@@ -1,0 +1,180 @@
+"""CPU tuning in one room: the kernels' batching / blocking constants and CPU-only strategies.
+
+Every kernel is written once, in its reference form. What is here changes speed and memory only,
+never a value (each strategy has a test that it gives the very result of one pass; see
+``tests/test_tuning.py``):
+
+* :func:`for_device` picks a :class:`Strategy` by device type. On the CPU the image-sized passes
+  are cut into cache-sized blocks / groups of streams (fresh multi-MB temporaries sit above
+  glibc's mmap threshold and are page-faulted in on every call, and they fall out of the caches);
+  on any other device a kernel runs the whole batch in one pass, with no grouping and no blocking.
+* :func:`inplace_ok` chooses the fast form of a kernel step (in place, or fewer ops): the same
+  operations in the same order as the reference (out-of-place, differentiable) form, so the values
+  are bit-identical; it is taken when autograd does not need the tensors involved.
+  :func:`reference_forms` makes every kernel take its reference form (for the tests that hold each
+  fast form equal to it).
+
+Each constant names the benchmark that chose it; all were measured on 752x480 EuRoC frames with 1
+torch thread (``benchmarks/bench_image.py``, ``bench_lk.py``, ``bench_ransac.py`` and the tracker
+A/B ``benchmarks/ab_tracker.py``). A new CPU strategy goes here: a field of :class:`Strategy` with
+its CPU value and its one-pass value, and a test that both give the same result.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from typing import Dict, Iterator, List, Optional, Tuple
+
+import torch
+
+__all__ = ["Strategy", "CPU", "ONE_PASS", "STRATEGIES", "for_device", "inplace_ok", "reference_forms"]
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """How the kernels split their work on one kind of device. ``None``: one pass."""
+
+    #: CLAHE (``equalize``): pixels per block of image rows for the histogram keys and the LUT blend
+    clahe_block_pixels: Optional[int]
+    #: ``build_pyramid``: batches of more than ``pyramid_batch_pixels`` pixels are built in groups of
+    #: ``pyramid_group_pixels`` pixels of streams
+    pyramid_group_pixels: Optional[int]
+    pyramid_batch_pixels: Optional[int]
+    #: corner responses and GFTT non-maximum suppression: pixels per group of streams
+    corner_block_pixels: Optional[int]
+    #: LK: streams are tracked in groups of at most ``lk_max_streams`` streams and ``lk_max_lanes``
+    #: points (pyramids padded once for the whole batch)
+    lk_max_lanes: Optional[int]
+    lk_max_streams: Optional[int]
+    #: a host check that can skip work is free (CPU) rather than a device synchronisation
+    host_checks_free: bool
+    #: GFTT greedy minimum-distance acceptance: candidates per rank chunk, the first chunk
+    #: ``gftt_chunk``, each next one twice as large up to ``gftt_chunk_max``; memory ~ 20 B
+    #: survivors² + 12 B chunk max_corners bytes
+    gftt_chunk: int
+    gftt_chunk_max: int
+    #: RANSAC: minimal samples per problem in the first round; problems x samples x points per later
+    #: round (~10 floats each: a memory budget); lanes above which only real cubic roots are scored
+    ransac_first_round: int
+    ransac_round_elems: int
+    ransac_compact_elems: int
+
+    # ------------------------------------------------------------------ work splits
+    def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
+        """Row ranges ``[r0, r1)`` of a ``(rows, width)`` pixel array processed together."""
+        if self.clahe_block_pixels is None:
+            return [(0, rows)]
+        step = max(1, self.clahe_block_pixels // max(width, 1))
+        return [(r, min(r + step, rows)) for r in range(0, rows, step)]
+
+    def pyramid_streams(self, B: int, H: int, W: int) -> Optional[int]:
+        """Streams per group for ``build_pyramid``, or None for one pass."""
+        if self.pyramid_group_pixels is None:
+            return None
+        per = max(1, self.pyramid_group_pixels // max(H * W, 1))
+        if B > per and B * H * W > self.pyramid_batch_pixels:
+            return per
+        return None
+
+    def corner_streams(self, B: int, H: int, W: int) -> Optional[int]:
+        """Streams per group for the corner response / NMS passes, or None for one pass."""
+        if self.corner_block_pixels is None:
+            return None
+        per = max(1, self.corner_block_pixels // max(H * W, 1))
+        return per if B > per else None
+
+    def lk_streams(self, B: int, N: int) -> Optional[int]:
+        """Streams per group for the LK, or None for one pass."""
+        if self.lk_max_lanes is None:
+            return None
+        per = max(1, min(self.lk_max_streams, self.lk_max_lanes // max(N, 1)))
+        return per if B > per else None
+
+
+CPU = Strategy(
+    # bench_image.py (clahe row): blocks of 2^17 pixels keep the float temporaries in cache and below
+    # glibc's mmap threshold; one block for the batch made B=8 ~2x slower per image than B=1
+    clahe_block_pixels=1 << 17,
+    # ab_tracker.py (commit fc73e7f), ms per image at B = 64: 2.9 in groups of
+    # one frame (2^19 pixels) vs 4.4 whole; at B <= 16 the whole batch is as fast or faster (the
+    # final concatenation costs a copy), hence grouping only above 2^24 pixels (~46 frames)
+    pyramid_group_pixels=1 << 19,
+    pyramid_batch_pixels=1 << 24,
+    # bench_image.py (min_eigen_response, good_features_to_track rows): the response needs ~10
+    # image-sized temporaries; for the whole batch at once B=8 cost ~20x B=1
+    corner_block_pixels=1 << 19,
+    # bench_lk.py (N = 1000 rows), 2 cores: B=8 x N=1000 in groups of 4 streams (4000 lanes) took
+    # 2x longer than stream by stream: the (win+1)^2 x lanes windows and their indices stay cache
+    # friendly up to ~1024 lanes; small N: at most 8 streams per group
+    lk_max_lanes=1024,
+    lk_max_streams=8,
+    host_checks_free=True,
+    # bench_image.py (good_features_to_track row): on EuRoC frames OpenCV's 150th corner is found at
+    # rank ~1500-1900, i.e. ~5 chunks growing 128 -> 512
+    gftt_chunk=128,
+    gftt_chunk_max=512,
+    # bench_ransac.py: with few outliers OpenCV stops within 32 samples (small problems are bound by
+    # the number of torch ops per round); 2^20 lanes per round bounds the score tensors; above 2^16
+    # lanes compacting to the real roots (argsort + gather + one sync) is cheaper than scoring all
+    ransac_first_round=32,
+    ransac_round_elems=1 << 20,
+    ransac_compact_elems=1 << 16,
+)
+
+# Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
+# rounds are part of the algorithms' schedules (results do not depend on them) and memory budgets,
+# kept as on the CPU until measured on a device.
+ONE_PASS = Strategy(
+    clahe_block_pixels=None,
+    pyramid_group_pixels=None,
+    pyramid_batch_pixels=None,
+    corner_block_pixels=None,
+    lk_max_lanes=None,
+    lk_max_streams=None,
+    host_checks_free=False,
+    gftt_chunk=CPU.gftt_chunk,
+    gftt_chunk_max=CPU.gftt_chunk_max,
+    ransac_first_round=CPU.ransac_first_round,
+    ransac_round_elems=CPU.ransac_round_elems,
+    ransac_compact_elems=CPU.ransac_compact_elems,
+)
+
+#: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
+#: a strategy does not change results)
+STRATEGIES: Dict[str, Strategy] = {"cpu": CPU}
+
+
+def for_device(device) -> Strategy:
+    """The :class:`Strategy` for ``device`` (a ``torch.device`` or a string such as ``"cuda:0"``)."""
+    kind = device.type if isinstance(device, torch.device) else torch.device(device).type
+    return STRATEGIES.get(kind, ONE_PASS)
+
+
+_REFERENCE_ONLY = [False]
+
+
+def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
+    """True when a kernel may take its fast (in-place) form for these tensors: none of them
+    requires a gradient and :func:`reference_forms` is not active. ``None`` entries are ignored.
+
+    The fast form of every kernel step performs the reference form's operations in the same order
+    (in place, or into a preallocated output), so both give bit-identical values."""
+    if _REFERENCE_ONLY[0]:
+        return False
+    for t in tensors:
+        if t is not None and t.requires_grad:
+            return False
+    return True
+
+
+@contextlib.contextmanager
+def reference_forms() -> Iterator[None]:
+    """Within this block every kernel takes its reference (out-of-place, differentiable) form,
+    also without gradients: the tests compare it with the fast forms bit for bit."""
+    old = _REFERENCE_ONLY[0]
+    _REFERENCE_ONLY[0] = True
+    try:
+        yield
+    finally:
+        _REFERENCE_ONLY[0] = old

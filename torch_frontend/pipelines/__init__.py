@@ -1,0 +1,49 @@
+"""Pipelines: what ``torch-frontend`` runs, as library functions with an options dataclass each.
+
+* ``track``: :func:`run_track` (:class:`TrackOptions`): B sources as B streams of one batched
+  ``FeatureTracker``, the outputs written by ``torch_frontend.outputs``.
+* ``loop``: :func:`run_loop` (:class:`LoopOptions`): tracking -> keyframes -> triangulation ->
+  FAST/BRIEF -> vocabulary -> VINS's pose graph -> outputs (``loop.report``); :func:`demo_loop` on
+  a rendered revisiting sequence (``demo_sequence``). Its middle stages are ``loop_stages``.
+* ``vocabulary``: :func:`run_vocabulary_train` (:class:`VocabularyOptions`) and
+  :func:`load_vocabulary` (the package's ``.npz``, VINS's ``.bin``, DBoW2 YAML).
+* shared: ``inputs`` (``resolve_config``, ``open_inputs`` for ``(kind, path)`` sources,
+  ``ArraySequence``), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
+  ``pad_ragged``, ``resolve_device``).
+
+Bad options raise ``OptionError`` (a ``ValueError``) whose message starts with the option's name;
+the CLI maps its flags to these names. Names are imported lazily.
+"""
+
+from __future__ import annotations
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    "InputOptions": "common",
+    "OptionError": "common",
+    "pad_ragged": "common",
+    "progress_bar": "common",
+    "resolve_device": "common",
+    "ArraySequence": "inputs",
+    "open_inputs": "inputs",
+    "resolve_config": "inputs",
+    "TrackOptions": "track",
+    "run_track": "track",
+    "LoopOptions": "loop",
+    "LoopRecord": "loop",
+    "LoopRun": "loop",
+    "StreamRun": "loop",
+    "demo_loop": "loop",
+    "demo_options": "loop",
+    "demo_sequence": "loop",
+    "extrinsic_from_config": "loop",
+    "run_loop": "loop",
+    "VocabularyOptions": "vocabulary",
+    "load_vocabulary": "vocabulary",
+    "run_vocabulary_train": "vocabulary",
+}
+
+__all__ = sorted(_EXPORTS)
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -1,0 +1,702 @@
+"""Loop closure on images + a VIO trajectory, without ROS (``torch-frontend loop``, ``demo --loop``):
+:func:`run_loop` and the demo on a rendered revisiting sequence (:func:`demo_loop`).
+
+Pipeline (one call, B input streams):
+
+1. **Tracking**: the VINS front end (``FeatureTracker``, B streams in one batch) on the images.
+2. **Keyframes**: VINS takes keyframes from its estimator; here they are picked from the front
+   end's published frames whose time the given poses cover (``loop_stages.KeyframeLog``). A
+   keyframe's pose is the given body pose, interpolated (linear / slerp) at the image time.
+3. **Triangulation**: each keyframe's points are the tracks (feature ids) it sees, triangulated
+   from their observations on published frames with the given poses (camera pose = body pose ∘
+   camera-to-body extrinsic), in batched ``triangulate_points`` calls (chunks of keyframes); only
+   points that triangulate and lie in front of the keyframe camera are kept.
+4. **Description**: FAST + BRIEF of the keyframes (``describe_keyframes``, batched).
+5. **Vocabulary**: loaded (``LoopOptions.vocabulary``: a ``Vocabulary``, the package's ``.npz``,
+   VINS's ``brief_k10L6.bin`` or a DBoW2 YAML) or trained on this run's keyframe descriptors
+   (``LoopOptions.train_vocabulary``).
+6. **Pose graph**: ``PoseGraph.add_keyframe`` per keyframe in time order (place recognition,
+   verification, 4-DoF or 6-DoF optimisation). Several streams share one graph (VINS's
+   multi-sequence map: stream b is sequence b + 1, added one after the other, merged into the
+   first one's world by their first loop) or keep one graph each (``separate_graphs``).
+
+Convention:
+    * Poses are body-to-world ``(R_w_i, T_w_i)`` float64 (VINS), quaternions ``(w, x, y, z)``; the
+      extrinsic ``(R_ic, t_ic)`` is camera-to-body (VINS's ``qic``, ``tic``): from the config's
+      ``extrinsicRotation``/``extrinsicTranslation`` (VINS-Mono), ``body_T_cam0`` (VINS-Fusion) or
+      an EuRoC ``sensor.yaml``'s ``T_BS``; identity when none is given.
+    * Pose coverage: a frame is covered when its time lies between two poses at most
+      ``max_pose_gap`` seconds apart (or on a pose). Uncovered frames are tracked but never
+      keyframes (as VINS, whose estimator publishes nothing before it initialises); a stream with
+      no covered frame at all is a ``DataError`` naming the poses and both time spans.
+    * Keyframes with ``MIN_POINTS_TO_QUERY`` points or fewer (VINS needs more matches) join the
+      place database without querying it.
+    * ATE (``ate_before`` = input VIO, ``ate_after`` = loop-corrected, metres): RMSE of keyframe
+      positions after an SE(3) alignment to the ground truth interpolated at the keyframe times
+      (``trajectory.ate_rmse``); with several streams the top-level values pool every keyframe's
+      squared error (each stream aligned on its own); a shared map of several streams also gets
+      ``ate_joint_before``/``ate_joint_after``: one alignment for all streams.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError, DataError
+from .common import InputOptions, OptionError, pad_ragged, progress_bar, resolve_device
+from .inputs import ArraySequence, Source, frames_to_read, open_inputs, resolve_config, stream_names
+from .loop_stages import (
+    KeyframeLog,
+    as_trajectory,
+    covered_mask,
+    describe_keyframe_images,
+    joint_ate,
+    keyframe_ate,
+    listed_times,
+    make_keyframe,
+    span,
+    triangulate_keyframes,
+)
+from .track import TRACKER_MODES, tracked_batches
+
+__all__ = [
+    "DEMO_OPTIONS",
+    "DEMO_RENDER",
+    "LoopOptions",
+    "LoopRecord",
+    "LoopRun",
+    "MIN_POINTS_TO_QUERY",
+    "StreamRun",
+    "demo_config",
+    "demo_loop",
+    "demo_options",
+    "demo_sequence",
+    "extrinsic_from_config",
+    "run_loop",
+]
+
+PathLike = Union[str, Path]
+_F64 = torch.float64
+MIN_POINTS_TO_QUERY = 25  # VINS accepts a loop only with > 25 matches: fewer points can never pass
+POSE_GRAPH_MODES = ("4dof", "6dof")
+PNP_BACKENDS = ("torch", "opencv")
+
+
+# ----------------------------------------------------------------------------------------------
+# options and results
+
+
+@dataclass
+class LoopOptions(InputOptions):
+    """Options of :func:`run_loop` (and the reader options of :class:`InputOptions`). Distances in
+    metres, angles in degrees, times in seconds.
+
+    Attributes:
+        vocabulary: a ``Vocabulary`` or a vocabulary file (``vocabulary.load_vocabulary``).
+        train_vocabulary: train one on this run's keyframe descriptors instead; exactly one of
+            ``vocabulary`` / ``train_vocabulary``.
+        vocabulary_k, vocabulary_L: branching factor and depth of a trained vocabulary.
+        vocabulary_sample: a seeded random sample of at most this many descriptors per keyframe
+            goes into training (k-medians time grows with their number; None: all).
+        load_graph: a saved pose graph folder (VINS format) loaded into every graph first.
+        separate_graphs: one pose graph per stream instead of one shared map.
+        mode: pose graph: ``"4dof"`` (VIO with IMU: x, y, z, yaw) or ``"6dof"`` (without).
+        tracker_mode: front end rules, ``"mono"`` (VINS-Mono) or ``"fusion"`` (VINS-Fusion).
+        keyframe_distance: new keyframe when the body moved more than this (m) ...
+        keyframe_angle: ... or turned more than this (degrees) since the last keyframe.
+        keyframe_every: instead, every k-th published frame with a pose (None: the rule above).
+        max_pose_gap: largest gap between two poses to interpolate across (s).
+        R_ic, t_ic: camera-to-body extrinsic ``(3, 3)`` / ``(3,)`` (m) overriding the config's.
+        pnp_backend: loop verification PnP-RANSAC, ``"torch"`` or ``"opencv"``.
+        triangulation_chunk: keyframes per batched triangulation call.
+        track_window: published frames either side of a chunk whose observations triangulate it.
+        describe_batch: keyframes per batched description call.
+        seed: seed of vocabulary sampling/training and of the pose graph's RANSAC.
+        keep_images: keep the keyframe images in ``LoopRun.images`` (for plots of matches).
+    """
+
+    vocabulary: Any = None
+    train_vocabulary: bool = False
+    vocabulary_k: int = 10
+    vocabulary_L: int = 4
+    vocabulary_sample: Optional[int] = 200
+    load_graph: Optional[PathLike] = None
+    separate_graphs: bool = False
+    mode: str = "4dof"
+    tracker_mode: str = "mono"
+    keyframe_distance: float = 0.2
+    keyframe_angle: float = 10.0
+    keyframe_every: Optional[int] = None
+    max_pose_gap: float = 0.5
+    R_ic: Any = None
+    t_ic: Any = None
+    pnp_backend: str = "torch"
+    triangulation_chunk: int = 32
+    track_window: int = 40
+    describe_batch: int = 8
+    seed: int = 0
+    keep_images: bool = False
+
+    def check(self) -> None:
+        """Raise ``OptionError`` naming the first bad option."""
+        super().check()
+        if self.vocabulary is None and not self.train_vocabulary:
+            raise OptionError("vocabulary", "vocabulary: none given: give a vocabulary (a Vocabulary or a file) "
+                                            "or set train_vocabulary")
+        if self.vocabulary is not None and self.train_vocabulary:
+            raise OptionError("vocabulary", "vocabulary: give either a vocabulary or train_vocabulary, not both")
+        choices = (("mode", POSE_GRAPH_MODES), ("tracker_mode", TRACKER_MODES), ("pnp_backend", PNP_BACKENDS))
+        for name, allowed in choices:
+            if getattr(self, name) not in allowed:
+                raise OptionError(name, f"{name}: expected {' or '.join(map(repr, allowed))}, "
+                                        f"got {getattr(self, name)!r}")
+        for name in ("keyframe_every", "vocabulary_sample", "triangulation_chunk", "describe_batch"):
+            v = getattr(self, name)
+            if v is not None and v < 1:
+                raise OptionError(name, f"{name}: expected >= 1, got {v}")
+        for name in ("keyframe_distance", "keyframe_angle", "track_window"):
+            if not getattr(self, name) >= 0:
+                raise OptionError(name, f"{name}: expected >= 0, got {getattr(self, name)}")
+        if not self.max_pose_gap > 0:
+            raise OptionError("max_pose_gap", f"max_pose_gap: expected > 0, got {self.max_pose_gap}")
+
+
+@dataclass
+class LoopRecord:
+    """One verified loop candidate: the pose graph's ``LoopResult`` plus where it happened.
+
+    ``graph``: graph number; ``stream``/``old_stream``: input streams of the current and old
+    keyframes (-1 for a keyframe loaded with ``load_graph``); ``time``/``old_time``: seconds.
+    """
+
+    graph: int
+    stream: int
+    old_stream: int
+    time: float
+    old_time: float
+    result: Any
+
+
+@dataclass
+class StreamRun:
+    """One input stream of a run.
+
+    ``vio``/``corrected``: ``trajectory.Trajectory`` of its keyframes (input VIO poses /
+    loop-corrected poses in the pose-graph world); ``graph_indices``: the keyframes' indices in
+    graph ``graph``; ``num_points``: 3-D points per keyframe; ``ground_truth``: the reference
+    trajectory or None; ``ate_before``/``ate_after`` in metres or None.
+    """
+
+    name: str
+    stream: int
+    graph: int
+    sequence: int
+    frames: int = 0
+    published: int = 0
+    uncovered: int = 0
+    keyframe_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    graph_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    num_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    vio: Any = None
+    corrected: Any = None
+    ground_truth: Any = None
+    ate_before: Optional[float] = None
+    ate_after: Optional[float] = None
+
+
+@dataclass
+class LoopRun:
+    """Everything a run produced: the pose graph(s), the streams, every verified loop candidate,
+    the ``summary.json`` dict and, with ``keep_images``, the keyframe images
+    ``{(graph, index): (H, W) uint8}``."""
+
+    graphs: List[Any]
+    streams: List[StreamRun]
+    loops: List[LoopRecord]
+    summary: Dict[str, Any]
+    images: Optional[Dict[Tuple[int, int], np.ndarray]] = None
+    out: Optional[Path] = None
+
+    def keyframe(self, graph: int, index: int):
+        """The ``KeyFrame`` with ``index`` in graph ``graph``."""
+        return self.graphs[graph].keyframes[index]
+
+
+def extrinsic_from_config(cfg) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Camera-to-body ``(R_ic (3, 3), t_ic (3,))`` float64 of a ``TrackerConfig`` (see the module
+    docstring); identity / zero when the config gives none."""
+    raw = getattr(cfg, "raw", None) or {}
+    path = getattr(cfg, "path", None)
+    if "extrinsicRotation" in raw or "extrinsicTranslation" in raw:
+        R = np.asarray(raw.get("extrinsicRotation"), dtype=np.float64)
+        t = np.asarray(raw.get("extrinsicTranslation"), dtype=np.float64)
+        if R.shape != (3, 3):
+            raise ConfigError(f"expected a 3x3 matrix, got shape {R.shape}", path, "extrinsicRotation")
+        if t.size != 3:
+            raise ConfigError(f"expected 3 numbers, got shape {t.shape}", path, "extrinsicTranslation")
+        return torch.from_numpy(R.copy()), torch.from_numpy(t.reshape(3).copy())
+    T = getattr(cfg, "body_T_cam0", None)
+    if T is None and path and Path(path).name == "sensor.yaml":
+        from ..opencv_yaml import read_opencv_yaml
+
+        tbs = read_opencv_yaml(Path(path)).get("T_BS")
+        if isinstance(tbs, dict) and len(tbs.get("data", [])) == 16:
+            T = np.asarray(tbs["data"], dtype=np.float64).reshape(4, 4)
+    if T is not None:
+        T = np.asarray(T, dtype=np.float64)
+        return torch.from_numpy(T[:3, :3].copy()), torch.from_numpy(T[:3, 3].copy())
+    return torch.eye(3, dtype=_F64), torch.zeros(3, dtype=_F64)
+
+
+# ----------------------------------------------------------------------------------------------
+# the run
+
+
+@dataclass
+class _Inputs:
+    """What :func:`run_loop` opened and checked before the long part (one entry per stream)."""
+
+    cfg: Any
+    device: torch.device
+    R_ic: torch.Tensor
+    t_ic: torch.Tensor
+    seqs: List[Any]
+    names: List[str]
+    trajs: List[Any]
+    pose_names: List[str]
+    gts: List[Any]  # as given (files, trajectories or None)
+    gt_trajs: List[Any]
+    vocabulary: Any  # loaded, or None: trained on the run
+
+
+@dataclass
+class _Graphs:
+    """The pose-graph stage's results and counts."""
+
+    graphs: List[Any]
+    streams: List[StreamRun]
+    loops: List[LoopRecord]
+    images: Optional[Dict[Tuple[int, int], np.ndarray]]
+    keyframes: int
+    loaded: int
+    not_querying: int
+    accepted: int
+    seconds: float
+
+
+def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optional[PathLike] = None,
+             options: Optional[LoopOptions] = None, *, ground_truth: Optional[Sequence[Any]] = None,
+             extra_summary: Optional[Dict[str, Any]] = None) -> LoopRun:
+    """Loop-closure run on B image streams with their VIO poses (see the module docstring).
+
+    Args:
+        config: ``TrackerConfig``, a VINS config path, or None (``sensor.yaml`` of the first
+            ``euroc`` source).
+        sources: one per stream, ``(kind, path)`` with kind ``euroc``/``images``/``bag`` or an
+            ``io`` sequence (e.g. ``ArraySequence``).
+        poses: one per stream, a trajectory file (TUM, VINS csv, EuRoC ground truth; read by
+            ``trajectory.read_trajectory``) or a ``Trajectory`` (body-to-world, seconds, wxyz).
+        out: output folder (``loop.report.write_loop_outputs``); None: write nothing.
+        options: :class:`LoopOptions` (the defaults need a vocabulary: set ``vocabulary`` or
+            ``train_vocabulary``).
+        ground_truth: None or one entry (file, ``Trajectory`` or None) per stream: ATE before/after.
+        extra_summary: entries added to the summary (the demo's render).
+
+    Returns:
+        the :class:`LoopRun` (its ``summary`` is also ``summary.json``).
+
+    Raises:
+        OptionError: bad options or argument counts; DataError: unreadable inputs, poses that
+            cover none of a stream's images, a bad vocabulary file, ground truth that does not
+            overlap, ...; ConfigError: a bad config.
+    """
+    t_start = _time.perf_counter()
+    opt = LoopOptions() if options is None else options
+    sources, poses = list(sources), list(poses)
+    gts = [None] * len(sources) if ground_truth is None else list(ground_truth)
+    _check_arguments(sources, poses, gts, opt)
+    times: Dict[str, float] = {}
+    inp = _open_inputs(config, sources, poses, gts, opt, times)
+    logs, skipped = _track(inp, opt, times)
+    t0 = _time.perf_counter()
+    tri = [triangulate_keyframes(log, inp.R_ic, inp.t_ic, opt.triangulation_chunk, opt.track_window)
+           for log in logs]
+    times["triangulation"] = _time.perf_counter() - t0
+    t0 = _time.perf_counter()
+    cam_d = inp.cfg.camera.to(device=inp.device, dtype=_F64)
+    descs = [describe_keyframe_images(log.kf_images, tri[b][0], cam_d, inp.device, opt.describe_batch)
+             for b, log in enumerate(logs)]
+    times["description"] = _time.perf_counter() - t0
+    voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
+    gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
+    t_opt = sum(g.optimize_seconds for g in gr.graphs)
+    times["recognition_verification"] = gr.seconds - t_opt
+    times["optimisation"] = t_opt
+    for log in logs:  # the images live on in the keyframes' owners only when asked for
+        log.kf_images = []
+    ate = _trajectories_and_ate(inp, gr, opt)
+    summary = _summary(inp, opt, gr, ate, voc_info, times, skipped, _time.perf_counter() - t_start)
+    if extra_summary:
+        summary.update(extra_summary)
+    run = LoopRun(gr.graphs, gr.streams, gr.loops, summary, gr.images, None if out is None else Path(out))
+    if out is not None:
+        from ..loop.report import write_loop_outputs
+
+        summary["out"] = str(Path(out))
+        write_loop_outputs(out, run)
+    return run
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}{'s' if n != 1 else ''}"
+
+
+def _check_arguments(sources: List[Any], poses: List[Any], gts: List[Any], opt: LoopOptions) -> None:
+    if not sources:
+        raise OptionError("sources", "sources: no input given (expected at least one (kind, path) or io Sequence)")
+    n = len(sources)
+    if len(poses) != n:
+        raise OptionError("poses", f"poses: expected one poses file per input, in the same order "
+                                   f"({_plural(n, 'input')}), got {len(poses)}")
+    if len(gts) != n:
+        raise OptionError("ground_truth", f"ground_truth: expected one file per input, in the same order "
+                                          f"({_plural(n, 'input')}), got {len(gts)}")
+    opt.check()
+
+
+def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str, float]) -> _Inputs:
+    """Config, extrinsic, sequences, poses, ground truth and vocabulary, all checked before the
+    long part; poses that miss a stream's images entirely fail here, not after tracking."""
+    from ..loop.vocabulary import Vocabulary
+    from .vocabulary import load_vocabulary
+
+    dev = resolve_device(opt.device)
+    cfg = resolve_config(config, sources, opt.camera)
+    R_ic, t_ic = extrinsic_from_config(cfg)
+    R_ic = R_ic if opt.R_ic is None else torch.as_tensor(opt.R_ic, dtype=_F64).reshape(3, 3)
+    t_ic = t_ic if opt.t_ic is None else torch.as_tensor(opt.t_ic, dtype=_F64).reshape(3)
+    seqs = open_inputs(sources, cfg, opt)
+    names = stream_names(seqs)
+    trajs = [as_trajectory(p, "poses") for p in poses]
+    pose_names = [str(p) if not isinstance(p, tuple) else f"poses of {n}" for p, n in zip(poses, names)]
+    gt_trajs = [None if g is None else as_trajectory(g, "ground truth") for g in gts]
+    voc = None
+    t0 = _time.perf_counter()
+    if opt.vocabulary is not None:
+        voc = opt.vocabulary if isinstance(opt.vocabulary, Vocabulary) else load_vocabulary(opt.vocabulary)
+    if opt.load_graph is not None and not (Path(opt.load_graph) / "pose_graph.txt").is_file():
+        raise DataError(f"{opt.load_graph}: no saved pose graph here (pose_graph.txt missing)")
+    times["vocabulary_load"] = _time.perf_counter() - t0
+    # the readers list their stamps without decoding an image
+    for b, (sq, tr) in enumerate(zip(seqs, trajs)):
+        st = listed_times(sq)
+        if st is not None and st.size and not covered_mask(tr, st, opt.max_pose_gap).any():
+            raise DataError(f"{pose_names[b]}: the poses ({span(tr.time.numpy())}) do not cover the images of "
+                            f"input {b + 1} {names[b]} ({span(st)}, {st.size} images); are they this "
+                            f"sequence's poses, with times in the same clock?")
+    return _Inputs(cfg, dev, R_ic, t_ic, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
+
+
+def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float]) -> Tuple[List[KeyframeLog], int]:
+    """Stages 1-2: track every stream and pick its keyframes; returns the logs and the number of
+    skipped bad frames."""
+    from ..io import MultiStream
+    from ..tracker import FeatureTracker
+
+    B = len(inp.seqs)
+    logs = [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
+                        opt.keyframe_angle, opt.keyframe_every) for b in range(B)]
+    stream = MultiStream(inp.seqs, size=(inp.cfg.image_height, inp.cfg.image_width), max_steps=opt.max_frames)
+    tracker = FeatureTracker(inp.cfg, num_streams=B, device=inp.device, mode=opt.tracker_mode)
+    with progress_bar(opt.progress, frames_to_read(inp.seqs, opt.max_frames), "tracking", "frame") as bar:
+        t0 = _time.perf_counter()
+        for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar):
+            alive = batch.alive.numpy().astype(bool)
+            pub = fr.published.cpu().numpy().astype(bool) & alive
+            valid = fr.valid.cpu().numpy()
+            ids = fr.ids.cpu().numpy()
+            xy = fr.xy.detach().cpu().double().numpy()
+            uv = fr.uv.detach().cpu().double().numpy()
+            ts = fr.timestamps.cpu().double().numpy()
+            for b in np.flatnonzero(alive).tolist():  # streams, not points
+                logs[b].frames += 1
+                if pub[b]:
+                    m = valid[b] & (ids[b] >= 0)
+                    logs[b].add(float(ts[b]), ids[b][m], xy[b][m], uv[b][m], batch.raw[b])
+    times["tracking"] = _time.perf_counter() - t0
+    for b, log in enumerate(logs):
+        if not any(log.covered):
+            raise DataError(f"{log.poses_name}: the poses ({span(log.traj.time.numpy())}) do not cover the images "
+                            f"of input {b + 1} {log.name} ({span(log.times)}, {len(log.times)} published frames); "
+                            f"are they this sequence's poses, with times in the same clock?")
+        if not log.kf_frames:
+            raise DataError(f"{log.name}: no keyframe (no published frame with tracked features inside the poses' "
+                            f"time span {span(log.traj.time.numpy())})")
+    return logs, len(stream.skipped)
+
+
+def _vocabulary(voc, descs: List[List[Dict[str, torch.Tensor]]], opt: LoopOptions, times: Dict[str, float]):
+    """Stage 5: the given vocabulary, or one trained on the keyframes' BRIEF descriptors; returns
+    it and the summary's ``vocabulary`` entry."""
+    from ..loop.vocabulary import Vocabulary
+
+    if voc is None:
+        t0 = _time.perf_counter()
+        gen = torch.Generator().manual_seed(opt.seed)
+        allb = [d["brief"] for ds in descs for d in ds]
+        # a seeded random sample of each keyframe's corners: k-medians time grows with the number
+        # of descriptors, and a few hundred per image describe its words well enough
+        if opt.vocabulary_sample is not None:
+            allb = [x[torch.randperm(x.shape[0], generator=gen)[:opt.vocabulary_sample].sort().values]
+                    for x in allb]
+        D, V = pad_ragged(allb, min_length=1)  # documents (keyframes) x descriptors
+        if not bool(V.any()):
+            raise DataError("cannot train a vocabulary: the keyframes have no FAST corners (blank images?)")
+        voc = Vocabulary.train(D, V, k=opt.vocabulary_k, L=opt.vocabulary_L, generator=gen)
+        times["vocabulary"] = _time.perf_counter() - t0
+        info: Dict[str, Any] = {"source": "trained on this run", "documents": len(allb), "descriptors": int(V.sum())}
+    else:
+        times["vocabulary"] = times["vocabulary_load"]
+        info = {"source": str(getattr(voc, "source", None) or opt.vocabulary)}
+    info.update({"k": int(voc.k), "L": int(voc.L), "words": int(voc.num_words)})
+    times.pop("vocabulary_load", None)
+    return voc, info
+
+
+def _pose_graphs(inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: LoopOptions) -> _Graphs:
+    """Stage 6: every keyframe into its pose graph, in time order (one stream after the other)."""
+    from ..loop.pose_graph import PoseGraph
+
+    B = len(logs)
+    n_graphs = B if opt.separate_graphs else 1
+    cam_cpu = inp.cfg.camera.to(dtype=_F64)
+    graphs = [PoseGraph(cam_cpu, voc, mode=opt.mode, R_ic=inp.R_ic, t_ic=inp.t_ic, pnp_backend=opt.pnp_backend,
+                        generator=torch.Generator().manual_seed(opt.seed)) for _ in range(n_graphs)]
+    loaded = 0
+    if opt.load_graph is not None:
+        for g in graphs:
+            loaded = g.load(opt.load_graph)
+    gr = _Graphs(graphs, [], [], {} if opt.keep_images else None, sum(len(log.kf_frames) for log in logs),
+                 loaded, 0, 0, 0.0)
+    owner: Dict[Tuple[int, int], int] = {}  # (graph, index) -> stream
+    with progress_bar(opt.progress, gr.keyframes, "loop closure", "kf") as bar:
+        t0 = _time.perf_counter()
+        for b, log in enumerate(logs):
+            g = b if opt.separate_graphs else 0
+            seq_id = 1 if opt.separate_graphs else b + 1
+            pts, Tk, Rk = tri[b]
+            idx = []
+            for k, f in enumerate(log.kf_frames):  # keyframes: one pose-graph step each
+                kf = make_keyframe(log.times[f], seq_id, Tk[k], Rk[k], pts[k], descs[b][k])
+                query = kf.num_points > MIN_POINTS_TO_QUERY
+                gr.not_querying += int(not query)
+                res = graphs[g].add_keyframe(kf, detect_loop=query)
+                owner[(g, kf.index)] = b
+                idx.append(kf.index)
+                if gr.images is not None:
+                    gr.images[(g, kf.index)] = log.kf_images[k]
+                if res is not None:
+                    old = graphs[g].keyframes[res.old_index]
+                    gr.loops.append(LoopRecord(g, b, owner.get((g, res.old_index), -1), kf.time, old.time, res))
+                    gr.accepted += int(res.accepted)
+                if bar is not None:
+                    bar.set_postfix(loops=gr.accepted, refresh=False)
+                    bar.update(1)
+            gr.streams.append(StreamRun(
+                name=log.name, stream=b, graph=g, sequence=seq_id, frames=log.frames, published=len(log.times),
+                uncovered=int(len(log.covered) - sum(log.covered)),
+                keyframe_times=np.array([log.times[f] for f in log.kf_frames]),
+                graph_indices=np.array(idx, dtype=np.int64),
+                num_points=np.array([p[0].shape[0] for p in pts], dtype=np.int64)))
+    gr.seconds = _time.perf_counter() - t0
+    return gr
+
+
+def _trajectories_and_ate(inp: _Inputs, gr: _Graphs, opt: LoopOptions) -> Dict[str, float]:
+    """Each stream's keyframe trajectories (VIO and corrected) and ATE; returns the summary's
+    pooled ATE entries (empty without ground truth)."""
+    from ..geometry import R_to_quat
+    from ..trajectory import Trajectory
+
+    sq_b = sq_a = 0.0
+    n_pairs = 0
+    joint_b: List[Any] = []
+    joint_a: List[Any] = []
+    for s in gr.streams:
+        kfs = [gr.graphs[s.graph].keyframes[i] for i in s.graph_indices.tolist()]
+        tt = torch.tensor([k.time for k in kfs], dtype=_F64)
+        s.vio = Trajectory(tt, torch.stack([k.origin_vio_T for k in kfs]),
+                           R_to_quat(torch.stack([k.origin_vio_R for k in kfs])))
+        s.corrected = Trajectory(tt.clone(), torch.stack([k.T_w_i for k in kfs]),
+                                 R_to_quat(torch.stack([k.R_w_i for k in kfs])))
+        gt = inp.gt_trajs[s.stream]
+        if gt is None:
+            continue
+        s.ground_truth = gt
+        eb, n, sb, pb = keyframe_ate(s.vio, gt, opt.max_pose_gap)
+        ea, _, sa, pa = keyframe_ate(s.corrected, gt, opt.max_pose_gap)
+        joint_b.append(pb)
+        joint_a.append(pa)
+        if eb is None:
+            raise DataError(f"{inp.gts[s.stream]}: the ground truth ({span(gt.time.numpy())}) covers fewer than 3 "
+                            f"keyframes of {s.name} ({span(s.keyframe_times)})")
+        s.ate_before, s.ate_after = eb, ea
+        sq_b, sq_a, n_pairs = sq_b + sb, sq_a + sa, n_pairs + n
+    ate: Dict[str, float] = {}
+    if n_pairs:
+        ate["ate_before"] = math.sqrt(sq_b / n_pairs)
+        ate["ate_after"] = math.sqrt(sq_a / n_pairs)
+        B = len(gr.streams)
+        if not opt.separate_graphs and B > 1 and len(joint_b) == B:
+            # one alignment for all streams: "after" measures the merged map; "before" only means
+            # something when the inputs' VIO poses share one world (e.g. one recording split in two)
+            ate["ate_joint_before"] = joint_ate(joint_b)
+            ate["ate_joint_after"] = joint_ate(joint_a)
+    return ate
+
+
+def _summary(inp: _Inputs, opt: LoopOptions, gr: _Graphs, ate: Dict[str, float], voc_info: Dict[str, Any],
+             times: Dict[str, float], skipped: int, seconds: float) -> Dict[str, Any]:
+    """The ``summary.json`` dict (its key order is part of the output format)."""
+    reasons: Dict[str, int] = {}
+    for r in gr.loops:
+        if not r.result.accepted:
+            reasons[r.result.reason] = reasons.get(r.result.reason, 0) + 1
+    n_graphs = len(gr.graphs)
+    summary: Dict[str, Any] = {
+        "keyframes": gr.keyframes,
+        "keyframes_loaded": gr.loaded * n_graphs,
+        "keyframes_not_querying": gr.not_querying,
+        "loop_candidates": len(gr.loops),
+        "loops_accepted": gr.accepted,
+        "loops_rejected": len(gr.loops) - gr.accepted,
+        "rejected_by_reason": dict(sorted(reasons.items())),
+        **ate,
+        "optimisations": sum(g.num_optimizations for g in gr.graphs),
+        "skipped_bad_frames": skipped,
+        "seconds": round(seconds, 6),
+        "times": {k: round(v, 6) for k, v in times.items()},
+        "keyframes_per_second": gr.keyframes / gr.seconds if gr.seconds > 0 else 0.0,
+        "streams": len(gr.streams),
+        "graphs": n_graphs,
+        "shared_map": not opt.separate_graphs,
+        "mode": opt.mode,
+        "tracker_mode": opt.tracker_mode,
+        "device": str(inp.device),
+        "config": str(inp.cfg.path),
+        "extrinsic": {"R_ic": inp.R_ic.tolist(), "t_ic": inp.t_ic.tolist()},
+        "keyframe_rule": ({"every": opt.keyframe_every} if opt.keyframe_every is not None else
+                          {"distance_m": opt.keyframe_distance, "angle_deg": opt.keyframe_angle}),
+        "vocabulary": voc_info,
+        "load_graph": None if opt.load_graph is None else str(opt.load_graph),
+        "per_stream": [_stream_summary(inp, gr, s) for s in gr.streams],
+    }
+    return summary
+
+
+def _stream_summary(inp: _Inputs, gr: _Graphs, s: StreamRun) -> Dict[str, Any]:
+    gt = inp.gts[s.stream]
+    return {
+        "name": s.name, "graph": s.graph, "sequence": s.sequence, "frames": s.frames, "published": s.published,
+        "published_without_pose": s.uncovered, "keyframes": int(s.graph_indices.size),
+        "mean_points": float(s.num_points.mean()) if s.num_points.size else 0.0,
+        "loops_accepted": sum(1 for r in gr.loops if r.stream == s.stream and r.result.accepted),
+        "ate_before": s.ate_before, "ate_after": s.ate_after,
+        "poses": inp.pose_names[s.stream],
+        "ground_truth": None if gt is None or isinstance(gt, tuple) else str(gt),
+    }
+
+
+# ----------------------------------------------------------------------------------------------
+# the demo
+
+
+#: the demo's render (``render_loop_sequence`` arguments): two laps of 64 keyframes, one frame
+#: between keyframes for the tracker, and a VIO drift of 0.15 deg of yaw per keyframe plus 3 % of
+#: the distance flown (about 20 deg and 0.5 m after two laps)
+DEMO_RENDER = dict(laps=2, keyframes_per_lap=64, frames_per_keyframe=2, width=320, height=240,
+                   yaw_bias_deg=0.15, trans_drift=0.03)
+
+#: the demo's :class:`LoopOptions`: the render moves ~0.13 m and turns ~5.6 deg per rendered
+#: keyframe, so 0.1 m / 5 deg give about one keyframe per rendered keyframe, 64 per lap, and lap 2
+#: lies more than VINS's 50 keyframes after lap 1; the vocabulary is trained on the run
+DEMO_OPTIONS = dict(train_vocabulary=True, keyframe_distance=0.1, keyframe_angle=5.0, vocabulary_sample=150)
+
+
+def demo_sequence(seed: int = 0, **render_kwargs):
+    """The demo's ``testing.SyntheticSequence`` (``DEMO_RENDER`` updated by ``render_kwargs``)."""
+    from ..testing.synthetic import render_loop_sequence
+
+    kw = dict(DEMO_RENDER)
+    kw.update(render_kwargs)
+    return render_loop_sequence(seed=seed, **kw)
+
+
+def demo_config(seq):
+    """A ``TrackerConfig`` for a ``SyntheticSequence``: its camera and size, 100 features 20 px
+    apart, every frame published (``freq`` 100 Hz above the render's rate), no CLAHE."""
+    from ..config import TrackerConfig
+
+    H, W = int(seq.images.shape[-2]), int(seq.images.shape[-1])
+    return TrackerConfig(path="demo (synthetic revisit sequence)", image_width=W, image_height=H,
+                         camera=seq.camera, max_cnt=100, min_dist=20, freq=100, F_threshold=1.0, equalize=False)
+
+
+def demo_options(**changes) -> LoopOptions:
+    """The demo's :class:`LoopOptions` (``DEMO_OPTIONS``) with ``changes`` (any option)."""
+    return LoopOptions(**{**DEMO_OPTIONS, **changes})
+
+
+def demo_loop(out: Optional[PathLike] = "out/demo_loop", options: Optional[LoopOptions] = None, *,
+              two_sequences: bool = False, sequence=None, seed: int = 0, **render_kwargs) -> LoopRun:
+    """``torch-frontend demo --loop``: render the synthetic revisit sequence (``demo_sequence``:
+    a room textured with the package's photo, two laps, exact poses, drifted VIO), run
+    :func:`run_loop` on it with its drifted VIO poses as the input poses, its true poses as the
+    ground truth and its camera-to-body extrinsic, and write the outputs into ``out`` (None:
+    nothing written).
+
+    Args:
+        options: the run's options (default :func:`demo_options`); ``R_ic``/``t_ic`` default to
+            the render's.
+        two_sequences: the two laps become two input streams (sequences 1 and 2) that share one
+            map (merged by their first loop) or, with ``options.separate_graphs``, keep one
+            graph each.
+        sequence: an already rendered ``SyntheticSequence`` (else ``demo_sequence(seed, ...)``).
+        seed: seed of the render.
+        render_kwargs: override ``DEMO_RENDER`` (e.g. smaller ``width``/``height``).
+    """
+    from ..geometry import R_to_quat
+    from ..trajectory import Trajectory
+
+    opt = demo_options() if options is None else options
+    opt.check()  # before the render, as the device
+    resolve_device(opt.device)
+    t0 = _time.perf_counter()
+    seq = demo_sequence(seed, **render_kwargs) if sequence is None else sequence
+    t_render = _time.perf_counter() - t0
+    opt = replace(opt, R_ic=seq.R_ic.cpu() if opt.R_ic is None else opt.R_ic,
+                  t_ic=seq.t_ic.cpu() if opt.t_ic is None else opt.t_ic)
+    cfg = demo_config(seq)
+    times = np.asarray(seq.times.cpu(), dtype=np.float64)
+    imgs = np.asarray(seq.images.cpu())
+
+    def traj(T, R, sl):
+        return Trajectory(torch.as_tensor(times[sl], dtype=_F64), torch.as_tensor(T, dtype=_F64).cpu()[sl],
+                          R_to_quat(torch.as_tensor(R, dtype=_F64).cpu()[sl]))
+
+    n = len(times) // 2
+    parts = [slice(0, n), slice(n, None)] if two_sequences else [slice(0, None)]
+    sources = [ArraySequence(imgs[sl], times[sl], name=f"demo{'' if len(parts) == 1 else f'_lap{i + 1}'}")
+               for i, sl in enumerate(parts)]
+    poses = [traj(seq.T_vio, seq.R_vio, sl) for sl in parts]
+    gts = [traj(seq.T_gt, seq.R_gt, sl) for sl in parts]
+    extra = {"demo": {"render_seconds": round(t_render, 6), "frames": int(len(times)),
+                      "size": [cfg.image_width, cfg.image_height], "two_sequences": bool(two_sequences)}}
+    return run_loop(cfg, sources, poses, out, opt, ground_truth=gts, extra_summary=extra)

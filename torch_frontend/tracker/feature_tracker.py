@@ -1,0 +1,205 @@
+"""``FeatureTracker``: the VINS-Mono front end (and VINS-Fusion's tracker) for B streams, as a thin
+stateful wrapper over the pure :func:`~torch_frontend.tracker.step`.
+
+Convention:
+    Each of the B streams has its own clock, feature table and id counter; ids are per stream
+    (stream b numbers its features 0, 1, 2, ...; VINS's one counter per process is the same thing
+    for one camera), int64. The per-frame branches of VINS (first frame skipped, restart, publish or
+    not, detection or not) differ per stream by masks; every stream runs through the same tensor
+    code in each call. ``tracker.state`` is the current :class:`TrackerState`; ``track`` replaces it
+    with the step's new state.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Dict, Optional, Sequence, Union
+
+import torch
+
+from .._checks import check_shape
+from ..config import TrackerConfig, load_config
+from .frame import FeatureFrame
+from .params import TrackerParams
+from .stages import remove_features, set_prediction
+from .state import TrackerState
+from .track_step import check_inputs, step_impl
+
+
+class _StageTimer:
+    """Per-stage wall-clock accounting (``FeatureTracker.stage_times``), for benchmarks: the step's
+    ``stage(name)`` hook. A no-op unless enabled; when enabled it synchronises CUDA at stage
+    boundaries so that the times are real (which costs a little throughput)."""
+
+    def __init__(self):
+        self.times: Optional[Dict[str, float]] = None
+
+    def __call__(self, name: str):
+        return _StageSpan(self, name)
+
+
+class _StageSpan:
+    def __init__(self, timer: _StageTimer, name: str):
+        self.timer, self.name = timer, name
+
+    def __enter__(self):
+        if self.timer.times is not None:
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        times = self.timer.times
+        if times is not None:
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()
+            times[self.name] = times.get(self.name, 0.0) + time.perf_counter() - self.t0
+        return False
+
+
+class FeatureTracker:
+    """The VINS front end for ``num_streams`` streams tracked together.
+
+    Args:
+        config: a ``TrackerConfig`` or the path of a VINS config YAML.
+        num_streams: B, the number of streams (cameras or sequences) tracked in each call.
+        device: where the state and the work live.
+        mode: ``"mono"`` (VINS-Mono ``feature_tracker`` node) or ``"fusion"`` (VINS-Fusion tracker).
+        dtype: float dtype of points inside the tracker (float32 default).
+        fisheye_mask: optional ``(H, W)`` uint8 mask for ``fisheye: 1`` configs; default: the
+            analytic disc of ``torch_frontend.fisheye_mask``.
+        seed: F-RANSAC seed, used for every problem of every call (OpenCV re-seeds identically on
+            each call), so a stream's result does not depend on the other streams.
+
+    ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
+    accepted) with ``H, W`` = the config's ``image_height``, ``image_width`` (mono; fusion takes any
+    size), and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
+    :class:`FeatureFrame`. ``step(state, ...)`` is the same without touching ``self.state``.
+    """
+
+    def __init__(
+        self,
+        config: Union[TrackerConfig, str],
+        num_streams: int = 1,
+        device: Union[str, torch.device] = "cpu",
+        mode: str = "mono",
+        dtype: torch.dtype = torch.float32,
+        fisheye_mask: Optional[torch.Tensor] = None,
+        seed: int = 0,
+    ):
+        if not isinstance(config, TrackerConfig):
+            config = load_config(config)
+        if config.camera is None:
+            raise ValueError(f"config {config.path}: has no camera; the tracker needs one")
+        if num_streams < 1:
+            raise ValueError(f"num_streams: expected >= 1, got {num_streams}")
+        self.config = config
+        self.B = int(num_streams)
+        self.device = torch.device(device)
+        self.dtype = dtype
+        try:
+            params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask)
+        except ValueError as exc:
+            raise ValueError(f"config {config.path}: {exc}") from None
+        self.params = params.to(self.device)
+        self._stage = _StageTimer()
+        self.reset()
+
+    # ------------------------------------------------------------------ read-only views
+    @property
+    def mode(self) -> str:
+        return self.params.mode
+
+    @property
+    def K(self) -> int:
+        """Slots per stream (``max_cnt``)."""
+        return self.params.max_cnt
+
+    @property
+    def camera(self):
+        return self.params.camera
+
+    @property
+    def camera1(self):
+        return self.params.camera1
+
+    @property
+    def stage_times(self) -> Optional[Dict[str, float]]:
+        """Seconds spent per stage since ``enable_stage_times()`` (None when disabled)."""
+        return self._stage.times
+
+    def enable_stage_times(self, enabled: bool = True) -> None:
+        """Start (or stop) accumulating per-stage wall-clock times (CLAHE, pyramid, LK, RANSAC,
+        mask, detection, undistort) into ``stage_times``."""
+        self._stage.times = {} if enabled else None
+
+    def compile(self, enable: bool = True) -> None:
+        """Use ``torch.compile`` for the LK iteration kernel (the hot loop), with eager as the
+        fallback (``enable=False``). Compilation happens on the first call (seconds to minutes)."""
+        from ..lk import compile_step
+
+        compile_step(enable)
+
+    # ------------------------------------------------------------------ state
+    def initial_state(self) -> TrackerState:
+        """The state of B streams that have seen nothing."""
+        return TrackerState.initial(self.B, self.K, device=self.device, dtype=self.dtype,
+                                    fusion=self.mode == "fusion")
+
+    def reset(self) -> None:
+        """Forget everything: all streams start again as at construction."""
+        self.state = self.initial_state()
+
+    # ------------------------------------------------------------------ the step
+    def step(self, state: TrackerState, images, timestamps, right=None, active=None):
+        """The pure step with this tracker's params: ``(new_state, frame)``; ``state`` is not changed.
+
+        Args:
+            state: a state of this tracker (``initial_state()``, ``self.state`` or a previous result).
+            images: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float 0..255.
+            timestamps: ``(B,)`` seconds (float64 tensor or sequence).
+            right: fusion stereo only: camera 1's images, tracked left -> right with the same ids.
+            active: optional ``(B,)`` bool; a stream with False is left exactly as it was (its
+                clock, features and ids do not change), e.g. a sequence that has ended while the
+                others go on. Its outputs are empty for this step.
+        """
+        img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
+                                          config_name=f"the config {self.config.path}")
+        return step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage)
+
+    def track(self, images, timestamps, right=None, active=None) -> FeatureFrame:
+        """Process one image per stream (see :meth:`step` for the arguments) and keep the new state."""
+        self.state, frame = self.step(self.state, images, timestamps, right=right, active=active)
+        return frame
+
+    # ------------------------------------------------------------------ the estimator's hooks
+    def remove(self, stream: int, ids: Sequence[int]) -> None:
+        """Drop features by id from one stream (VINS-Fusion ``removeOutliers``)."""
+        if not 0 <= stream < self.B:
+            raise ValueError(f"stream: expected 0 <= stream < {self.B}, got {stream}")
+        drop_ids = torch.as_tensor(list(ids), dtype=torch.int64, device=self.device)
+        if drop_ids.numel() == 0:
+            return
+        table = self.state.features
+        hit = (table.ids.unsqueeze(-1) == drop_ids).any(-1)
+        hit &= torch.arange(self.B, device=self.device).unsqueeze(-1) == stream
+        self.state = self.state.replace(features=remove_features(table, hit))
+
+    def set_prediction(self, ids: torch.Tensor, uv: torch.Tensor, valid: Optional[torch.Tensor] = None) -> None:
+        """Predicted pixels for the next frame per id (VINS-Fusion ``setPrediction``).
+
+        ids: (B, M) int64; uv: (B, M, 2) pixels; valid: (B, M) bool. In a stream with at least one
+        valid prediction, the next ``track`` starts LK from the predicted pixels (features without
+        one from their previous position) with one pyramid level, falling back to plain LK when
+        fewer than 10 track; other streams track as usual. Consumed by the next ``track``.
+        """
+        check_shape(ids, (self.B, "M"), "ids")
+        check_shape(uv, (self.B, ids.shape[1], 2), "uv")
+        ids = ids.to(self.device)
+        v = torch.ones_like(ids, dtype=torch.bool) if valid is None else valid.to(self.device, torch.bool)
+        table, has = set_prediction(self.state.features, ids, uv.to(self.device), v)
+        self.state = self.state.replace(features=table, has_prediction=has)
+
+
+__all__ = ["FeatureTracker"]

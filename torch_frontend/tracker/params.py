@@ -1,0 +1,180 @@
+"""``TrackerParams``: every setting of the tracker step, VINS's hard-coded constants by name.
+
+Convention:
+    Names follow VINS (config keys such as ``max_cnt``, ``min_dist``, ``F_threshold`` keep their
+    spelling; VINS's hard-coded constants get the names of ``docs/spec.md`` §2). Each constant's
+    comment cites the spec section that states it. Pixels are image pixels ``(x, y)``, times are
+    seconds. A ``TrackerParams`` is frozen and hashable: the step treats it as static.
+
+The step reads nothing else: the config file (``TrackerConfig``) fills the first block
+(:meth:`TrackerParams.from_config`); everything below it is the same in every VINS config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Optional, Tuple
+
+import torch
+
+from .._checks import check_shape
+from ..corners import check_block
+from ..equalize import check_grid
+from ..lk import LKOptions
+from ..masks import fisheye_mask as analytic_fisheye_mask
+
+MODES = ("mono", "fusion")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackerParams:
+    """Static settings of :func:`torch_frontend.tracker.step`.
+
+    Attributes (from the config, spec §1.2 / §1.5):
+        mode: ``"mono"`` (VINS-Mono ``feature_tracker``) or ``"fusion"`` (VINS-Fusion tracker).
+        width, height: ``COL``, ``ROW`` of the config (mono checks images against them; fusion
+            uses each image's actual size, spec §6.2).
+        max_cnt, min_dist, freq, F_threshold, equalize, fisheye, flow_back: the VINS keys
+            (``freq`` already mapped 0 -> 100 by the config reader).
+        seed: ``cv::RNG`` seed of every F-RANSAC problem (OpenCV re-seeds identically per call).
+        camera, camera1: the camodocal models of camera 0 and (fusion stereo) camera 1
+            (``CameraModel`` modules, float64 on the tracker's device).
+        fisheye_mask: ``(H, W)`` uint8 (255 = allowed) for mono ``fisheye: 1`` configs, else None.
+
+    The remaining fields are VINS's hard-coded constants; change them only to experiment.
+    """
+
+    mode: str = "mono"
+    width: int = 752
+    height: int = 480
+    max_cnt: int = 150
+    min_dist: int = 30
+    freq: int = 10
+    F_threshold: float = 1.0
+    equalize: bool = False
+    fisheye: bool = False
+    flow_back: bool = False
+    seed: int = 0
+    camera: Any = dataclasses.field(default=None, compare=False, repr=False)
+    camera1: Any = dataclasses.field(default=None, compare=False, repr=False)
+    fisheye_mask: Optional[Any] = dataclasses.field(default=None, compare=False, repr=False)
+
+    # --- img_callback clock rules (mono), spec §3.2
+    restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream
+    freq_reset_tolerance: float = 0.01  # |rate - FREQ| < 0.01 FREQ restarts the rate window
+
+    # --- CLAHE (mono, ``equalize``), spec §2 / §5.3
+    clahe_clip_limit: float = 3.0
+    clahe_tile_grid: Tuple[int, int] = (8, 8)
+
+    # --- pyramidal LK, spec §2 / §5.1
+    lk_win_size: int = 21
+    lk_max_level: int = 3
+    lk_max_iters: int = 30
+    lk_eps: float = 0.01
+    lk_min_eig_threshold: float = 1e-4
+    # VINS-Fusion: LK from a prediction and the temporal backward check use one level, spec §6.2
+    fusion_short_max_level: int = 1
+    # VINS-Fusion: fewer tracks from the prediction than this => plain LK instead, spec §6.2
+    prediction_min_tracked: int = 10
+    # VINS-Fusion FLOW_BACK: accept iff |back - start| <= this (px), spec §6.3
+    flow_back_threshold: float = 0.5
+
+    # --- inBorder, spec §2 / §3.6 step 5b: 1 <= cvRound(x) < COL - 1 (and y likewise)
+    border_size: int = 1
+
+    # --- rejectWithF, spec §2 / §3.8: 7-point RANSAC on the virtual pinhole. (VINS skips it below
+    # 8 points; the RANSAC kernel itself applies that rule, see ransac.find_fundamental.)
+    focal_length: float = 460.0  # FOCAL_LENGTH of the virtual pinhole, principal point (COL/2, ROW/2)
+    ransac_confidence: float = 0.99
+    ransac_max_iters: int = 1000  # OpenCV's default cap on minimal samples (spec §3.8)
+
+    # --- goodFeaturesToTrack, spec §2 / §5.2: Shi-Tomasi on 3x3 blocks (Harris' k unused)
+    gftt_quality_level: float = 0.01
+    gftt_block_size: int = 3
+    gftt_harris_k: float = 0.04
+
+    # --- velocities, spec §3.10 / §6.2: mono assigns ids after undistortion, so a feature gets a
+    # velocity from its 3rd processed observation; fusion assigns ids at detection (2nd observation)
+    mono_velocity_min_count: int = 3
+    fusion_velocity_min_count: int = 2
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode: expected 'mono' or 'fusion', got {self.mode!r}")
+        if self.max_cnt <= 0 or self.min_dist < 0:
+            raise ValueError(f"max_cnt must be > 0 and min_dist >= 0 for tracking, got max_cnt={self.max_cnt}, "
+                             f"min_dist={self.min_dist}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size: expected positive width and height, got {self.width}x{self.height}")
+        self.check_image_size(self.height, self.width)
+
+    def check_image_size(self, height: int, width: int) -> None:
+        """The kernels' size checks for ``height x width`` images (the step calls the kernels
+        without theirs): CLAHE's padding, the corner response's borders."""
+        if self.uses_clahe:
+            check_grid(height, width, *self.clahe_tile_grid)
+        check_block(height, width, self.gftt_block_size)
+
+    @classmethod
+    def from_config(cls, config, mode: str = "mono", seed: int = 0, **overrides) -> TrackerParams:
+        """Params of a ``TrackerConfig`` (VINS keys, its cameras) for ``mode``; ``overrides``
+        replace any field. Mono ``fisheye: 1`` configs get the analytic disc mask of
+        ``torch_frontend.fisheye_mask`` unless ``fisheye_mask`` is given."""
+        fields = dict(
+            mode=mode, width=int(config.image_width), height=int(config.image_height),
+            max_cnt=int(config.max_cnt), min_dist=int(config.min_dist), freq=int(config.freq),
+            F_threshold=float(config.F_threshold), equalize=bool(config.equalize), fisheye=bool(config.fisheye),
+            flow_back=bool(config.flow_back), seed=int(seed), camera=config.camera, camera1=config.camera1,
+        )
+        fields.update(overrides)
+        params = cls(**fields)
+        if not params.uses_fisheye_mask:
+            params = dataclasses.replace(params, fisheye_mask=None)
+        elif params.fisheye_mask is None:
+            params = dataclasses.replace(params, fisheye_mask=analytic_fisheye_mask(params.height, params.width))
+        return params
+
+    def to(self, device) -> TrackerParams:
+        """The same params with the cameras (float64) and the mask (checked: ``(H, W)``) on ``device``."""
+
+        def move(cam):
+            return None if cam is None else cam.to(device=device, dtype=torch.float64)
+
+        mask = self.fisheye_mask
+        if mask is not None:
+            mask = torch.as_tensor(mask)
+            check_shape(mask, (self.height, self.width), "fisheye_mask")
+            mask = mask.to(device, torch.uint8)
+        return dataclasses.replace(self, camera=move(self.camera), camera1=move(self.camera1), fisheye_mask=mask)
+
+    # ------------------------------------------------------------------ derived settings
+    @functools.cached_property
+    def lk_options(self) -> LKOptions:
+        """VINS's LK call (spec §2), OpenCV's fixed point (the tracker's pyramids are 8-bit)."""
+        return LKOptions(win_size=(self.lk_win_size, self.lk_win_size), max_level=self.lk_max_level,
+                         max_iters=self.lk_max_iters, eps=self.lk_eps, min_eig_threshold=self.lk_min_eig_threshold,
+                         fixed_point=True, early_exit=True)
+
+    @functools.cached_property
+    def lk_short_options(self) -> LKOptions:
+        """VINS-Fusion's one-level LK (from a prediction; the temporal backward check)."""
+        return dataclasses.replace(self.lk_options, max_level=self.fusion_short_max_level)
+
+    @property
+    def uses_clahe(self) -> bool:
+        """VINS-Mono equalises when ``equalize`` is set; VINS-Fusion never does (spec §6.2 step 1)."""
+        return self.mode == "mono" and self.equalize
+
+    @property
+    def uses_fisheye_mask(self) -> bool:
+        """Only VINS-Mono applies the fisheye mask (spec §3.13, §6.2 step 4)."""
+        return self.mode == "mono" and self.fisheye
+
+    @property
+    def velocity_min_count(self) -> int:
+        return self.mono_velocity_min_count if self.mode == "mono" else self.fusion_velocity_min_count
+
+
+__all__ = ["TrackerParams", "MODES"]

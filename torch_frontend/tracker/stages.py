@@ -1,0 +1,366 @@
+"""The tracker's stages, named after VINS's (spec §3.6, §6.2), each a pure batched function.
+
+Convention:
+    Stages take and return a :class:`~torch_frontend.tracker.table.FeatureTable` (B streams, K
+    slots, valid slots packed at the front in VINS order) plus per-stream ``(B,)`` bool masks that
+    say which streams the stage applies to; a stream outside the mask comes out unchanged. Images
+    are ``(B, 1, H, W)`` uint8 (validated once by the tracker's door), pixels ``(x, y)`` with pixel
+    centres at integer coordinates, times float64 seconds. ``stage(name)`` is a context manager the
+    caller may use to time or label the kernels (a no-op by default).
+
+Order of a mono step (``readImage``): :func:`equalize` -> :func:`image_pyramid` ->
+:func:`track_features` (LK, inBorder, compaction, ``track_cnt += 1``) -> on published frames
+:func:`reject_with_f` -> :func:`set_mask` -> :func:`add_points` -> :func:`update_id` ->
+:func:`undistorted_points`. Fusion: the same without CLAHE and rejectWithF, detection on every
+frame, and :func:`track_right` for the stereo camera.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from typing import NamedTuple, Optional, Tuple
+
+import torch
+
+from ..corners import _good_features_impl
+from ..equalize import _clahe_impl
+from ..lk import _forward_backward_impl, _track_lk_impl
+from ..masks import _distance_mask_impl
+from ..pyramid import Pyramid, _build_pyramid_impl
+from ..ransac import _find_fundamental_impl, _seeds, opencv_threshold_confidence
+from .params import TrackerParams
+from .table import FeatureTable
+
+Tensor = torch.Tensor
+
+
+def no_stage(name: str):
+    """The default ``stage`` hook: labels nothing."""
+    return contextlib.nullcontext()
+
+
+def _per_stream(mask: Tensor, x: Tensor) -> Tensor:
+    """``mask (B,)`` broadcast against ``x (B, ...)``."""
+    return mask.reshape(mask.shape + (1,) * (x.dim() - 1))
+
+
+def where_streams(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
+    """Stream b of ``new`` where ``mask[b]``, else of ``old``."""
+    return torch.where(_per_stream(mask, new), new, old)
+
+
+# ---------------------------------------------------------------------------------------------
+# images
+
+
+def equalize(img: Tensor, params: TrackerParams) -> Tensor:
+    """CLAHE (``createCLAHE(3.0, 8x8)``, spec §5.3) when the mode equalises, else the image."""
+    if not params.uses_clahe:
+        return img
+    gx, gy = params.clahe_tile_grid
+    return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy).unsqueeze(1)
+
+
+def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
+    """The LK pyramid of an 8-bit image: levels rounded as OpenCV's 8-bit ``pyrDown`` (LK fidelity);
+    no full-image derivatives (the LK takes them from the windows it reads)."""
+    return _build_pyramid_impl(img, params.lk_max_level, with_gradients=False, round_levels=True)
+
+
+def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid]) -> Pyramid:
+    """Per stream: ``new`` where ``mask``, else ``old``. The common case (every stream) keeps ``new``
+    as it is, with its padded-level cache (one host sync to know)."""
+    if old is None or bool(mask.all()):
+        return new
+    return Pyramid(levels=[where_streams(mask, n, o) for n, o in zip(new.levels, old.levels)], rounded=new.rounded)
+
+
+# ---------------------------------------------------------------------------------------------
+# readImage: LK, inBorder, compaction
+
+
+def _lk(prev: Pyramid, nxt: Pyramid, pts: Tensor, valid: Tensor, params: TrackerParams, *, short: bool = False,
+        init_pts: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+    """VINS's LK call (21x21, 30 iterations, eps 0.01, minEig 1e-4, spec §2; ``short``: VINS-Fusion's
+    one-level call), OpenCV's fixed point on the 8-bit pyramids."""
+    return _track_lk_impl(prev, nxt, pts, valid, init_pts, params.lk_short_options if short else params.lk_options)
+
+
+def _flow_back(prev: Pyramid, nxt: Pyramid, pts: Tensor, out: Tensor, status: Tensor, params: TrackerParams, *,
+               levels: int, from_start: bool) -> Tensor:
+    """VINS-Fusion's FLOW_BACK check of a forward result ``out`` (spec §6.3): track back with
+    ``levels`` levels from ``out`` (starting at ``pts`` when ``from_start``) and keep the points that
+    come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS)."""
+    return _forward_backward_impl(prev, nxt, pts, out, status, params.lk_options, levels, params.flow_back_threshold,
+                                  from_start)
+
+
+def in_border(pts: Tensor, width: int, height: int, border: int = 1) -> Tensor:
+    """VINS ``inBorder``: ``cvRound`` (half to even, as ``torch.round``), then
+    ``border <= x < W - border`` and ``border <= y < H - border``. NaN is outside."""
+    r = torch.round(torch.nan_to_num(pts.detach(), nan=-1e9))
+    x, y = r[..., 0], r[..., 1]
+    return (x >= border) & (x < width - border) & (y >= border) & (y < height - border)
+
+
+def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Tensor, tracked: Tensor,
+                   has_prediction: Tensor, params: TrackerParams, *, stage=no_stage) -> FeatureTable:
+    """``readImage``'s tracking part (spec §3.6 step 5-6, §6.2 step 2-3) for the ``run`` streams.
+
+    LK from the previous pyramid (fusion: from the prediction with one level where the stream has
+    one, falling back to plain LK when fewer than ``prediction_min_tracked`` points track; and the
+    FLOW_BACK check), the ``inBorder`` test on the image's own size, a stable compaction, then
+    ``track_cnt += 1`` for every feature of the ``tracked`` streams. ``prev_pts`` holds the pixels
+    before this step.
+    """
+    run_slots = run.unsqueeze(-1)
+    lk_valid = table.valid & run_slots
+    H, W = pyr.levels[0].shape[-2:]
+    fusion = params.mode == "fusion"
+    with stage("lk"):
+        if fusion and bool(has_prediction.any()):
+            nxt_p, st_p = _lk(prev_pyr, pyr, table.pts, lk_valid, params, short=True, init_pts=table.prediction)
+            nxt, st = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+            use = has_prediction & (st_p.sum(1) >= params.prediction_min_tracked)
+            nxt, st = where_streams(use, nxt_p, nxt), where_streams(use, st_p, st)
+        else:
+            nxt, st = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+        if fusion and params.flow_back:
+            st = _flow_back(prev_pyr, pyr, table.pts, nxt, st, params, levels=params.fusion_short_max_level,
+                            from_start=True)
+    st = st & in_border(nxt, W, H, params.border_size)
+    moved = table.replace(prev_pts=table.pts,
+                          pts=torch.where(run_slots.unsqueeze(-1), nxt.to(table.pts.dtype), table.pts))
+    table = moved.compact(torch.where(run_slots, table.valid & st, table.valid))
+    cnt = table.track_cnt
+    return table.replace(track_cnt=torch.where(table.valid & tracked.unsqueeze(-1), cnt + 1, cnt))
+
+
+# ---------------------------------------------------------------------------------------------
+# rejectWithF
+
+
+def lift_normalised(camera, pts: Tensor, valid: Tensor) -> Tensor:
+    """``liftProjective`` then ``(x/z, y/z)`` (VINS ``undistortedPoints``), ``(B, K, 2)`` in
+    ``pts``'s dtype; 0 in invalid slots.
+
+    Lifted in float64 (camodocal uses double); invalid slots are lifted at a harmless point and
+    ``|z| < 1e-12`` is clamped so that the division stays finite (``torch.where`` evaluates both
+    branches: a NaN there would poison gradients).
+    """
+    safe = torch.where(valid.unsqueeze(-1), pts.to(torch.float64), torch.zeros_like(pts, dtype=torch.float64))
+    P = camera._lift_impl(safe, **camera._params_like(safe))
+    z = P[..., 2:3]
+    z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+    xy = P[..., :2] / z
+    return torch.where(valid.unsqueeze(-1), xy, torch.zeros_like(xy)).to(pts.dtype)
+
+
+def virtual_pinhole(camera, pts: Tensor, valid: Tensor, params: TrackerParams) -> Tensor:
+    """rejectWithF's points: lifted, on the 460-px virtual pinhole with principal point
+    ``(COL / 2, ROW / 2)`` (spec §3.8), float64 pixels."""
+    xy = lift_normalised(camera, pts, valid).to(torch.float64)
+    c = torch.tensor([params.width / 2.0, params.height / 2.0], dtype=torch.float64, device=pts.device)
+    return params.focal_length * xy + c
+
+
+def reject_with_f(table: FeatureTable, publish: Tensor, camera, params: TrackerParams, *,
+                  stage=no_stage) -> FeatureTable:
+    """``rejectWithF`` (spec §3.8) on the ``publish`` streams: F-RANSAC between ``prev_pts`` and
+    ``pts`` on the virtual pinhole, then a compaction by the inlier mask.
+
+    The RANSAC kernel applies VINS's rule itself: below 8 points (or when no model is found) it
+    reports ``ok = False`` and the stream keeps every feature.
+    """
+    if not bool(publish.any()):  # host sync: no stream publishes (every other frame at 20 Hz)
+        return table
+    fv = table.valid & publish.unsqueeze(-1)
+    p1 = virtual_pinhole(camera, table.prev_pts, fv, params)
+    p2 = virtual_pinhole(camera, table.pts, fv, params)
+    # one fixed seed per call, as OpenCV re-seeds its RNG identically on every call: a stream's
+    # result then depends neither on the other streams nor on the call history
+    threshold, confidence = opencv_threshold_confidence(params.F_threshold, params.ransac_confidence)
+    with stage("ransac"):
+        res = _find_fundamental_impl(p1, p2, fv, threshold, confidence, params.ransac_max_iters,
+                                     _ransac_states(table.batch, params.seed), None)
+    apply = (publish & res.ok).unsqueeze(-1)
+    return table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
+
+
+@functools.lru_cache(maxsize=16)
+def _ransac_states(batch: int, seed: int) -> tuple:
+    """The ``cv::RNG`` state of every stream's problem (the same seed for all), computed once."""
+    return tuple(_seeds(batch, seed=seed))
+
+
+# ---------------------------------------------------------------------------------------------
+# setMask, addPoints
+
+
+class Detection(NamedTuple):
+    """The streams that detect this step and setMask's masks for them (``rows`` in stream order;
+    ``mask (len(rows), H, W)`` uint8, None when no stream detects)."""
+
+    rows: Tensor
+    mask: Optional[Tensor]
+
+
+def _rows_of(table: FeatureTable, rows: Tensor, x: Tensor) -> Tensor:
+    return x if rows.numel() == table.batch else x.index_select(0, rows)
+
+
+def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_mask: Optional[Tensor],
+             height: int, width: int, *, stage=no_stage) -> Tuple[FeatureTable, Detection]:
+    """VINS ``setMask`` (spec §3.7) for the ``detect`` streams: features sorted by track count
+    (descending; ties by slot order: a stable sort, where VINS's ``std::sort`` is unstable, see the
+    spec), each kept iff its rounded pixel is still 255 in the mask, which then gets a filled disc of
+    radius ``min_dist``; dropped features leave the table.
+
+    Only the detecting streams pay for the mask (mono: the published ones, about one frame in two at
+    20 Hz with freq 10): one host sync picks them.
+    """
+    B, K = table.valid.shape
+    rows = detect.nonzero().flatten()
+    if rows.numel() == 0:
+        return table, Detection(rows, None)
+    valid, cnt = _rows_of(table, rows, table.valid), _rows_of(table, rows, table.track_cnt)
+    key = torch.where(valid, cnt, torch.full_like(cnt, -1))
+    order = torch.sort(-key, dim=1, stable=True).indices
+    pts_s = torch.gather(_rows_of(table, rows, table.pts), 1, order.unsqueeze(-1).expand(-1, -1, 2))
+    valid_s, cnt_s = torch.gather(valid, 1, order), torch.gather(cnt, 1, order)
+    n = rows.numel()
+    if base_mask is None:
+        mask = torch.full((n, height, width), 255, dtype=torch.uint8, device=valid.device)
+    else:
+        mask = base_mask.expand(n, height, width).clone()  # written into: one copy per stream
+    with stage("mask"):
+        kept, mask = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask)
+    keep = valid_s & kept
+    if rows.numel() != B:
+        full = torch.arange(K, device=order.device).expand(B, K).clone()
+        full[rows] = order
+        order = full
+        keep_full = table.valid.clone()
+        keep_full[rows] = keep
+        keep = keep_full
+    return table.permute(order).compact(keep), Detection(rows, mask)
+
+
+def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: TrackerParams, *,
+               stage=no_stage) -> FeatureTable:
+    """``goodFeaturesToTrack`` into the free slots (spec §3.6 step 7c-d, §5.2): ``max_cnt - n``
+    corners (quality 0.01, ``min_dist``, setMask's mask) per detecting stream, appended in
+    response order with ``ids = -1``, ``track_cnt = 1`` (``is_new``)."""
+    rows = detection.rows
+    B = table.batch
+    if rows.numel() == 0:
+        return table.append(table.pts[:, :0], table.valid[:, :0])
+    n_max = table.capacity - _rows_of(table, rows, table.valid).sum(1)
+    with stage("detection"):
+        pts, valid = _good_features_impl(_rows_of(table, rows, img), n_max, params.gftt_quality_level,
+                                         float(params.min_dist), detection.mask != 0, False,
+                                         params.gftt_block_size, params.gftt_harris_k, None)
+    if rows.numel() != B:
+        full_pts = pts.new_zeros(B, pts.shape[1], 2)
+        full_valid = valid.new_zeros(B, valid.shape[1])
+        full_pts[rows], full_valid[rows] = pts, valid
+        pts, valid = full_pts, full_valid
+    return table.append(pts, valid)
+
+
+# ---------------------------------------------------------------------------------------------
+# updateID, undistortedPoints
+
+
+def update_id(table: FeatureTable, next_id: Tensor) -> Tuple[FeatureTable, Tensor]:
+    """VINS ``updateID`` (spec §3.9): new features get ``next_id, next_id + 1, ...`` in slot order;
+    returns the table and the streams' next ids. Ids are per stream."""
+    new = table.is_new
+    ids = torch.where(new, next_id.unsqueeze(-1) + torch.cumsum(new.to(torch.int64), dim=1) - 1, table.ids)
+    return table.replace(ids=ids), next_id + new.sum(1)
+
+
+def _velocity(un: Tensor, un_prev: Tensor, moving: Tensor, dt: Tensor) -> Tensor:
+    """``(un - un_prev) / dt`` where ``moving (B, K)``, else 0. ``dt (B,)`` seconds; a duplicate
+    stamp (``dt == 0``) gives zero velocity where VINS divides by zero (inf/NaN). The safe divisor
+    keeps the unused lanes finite."""
+    dt = dt.to(un.dtype).view(-1, 1, 1)
+    moving = moving.unsqueeze(-1) & (dt != 0)
+    return torch.where(moving, (un - un_prev) / torch.where(dt == 0, torch.ones_like(dt), dt), torch.zeros_like(un))
+
+
+def undistorted_points(table: FeatureTable, camera, dt: Tensor, params: TrackerParams, *,
+                       stage=no_stage) -> Tuple[FeatureTable, Tensor]:
+    """VINS ``undistortedPoints`` (spec §3.10, §6.2 step 5): lift every feature to normalised
+    coordinates (``un_pts``) and its velocity against the previous frame's point of the same slot,
+    ``dt`` = time since the stream's previous processed frame. A feature has a velocity from its
+    ``velocity_min_count``-th observation on (mono 3: ids are assigned after undistortion; fusion 2).
+    Returns ``(table, velocity (B, K, 2))``."""
+    with stage("undistort"):
+        un = lift_normalised(camera, table.pts, table.valid)
+    moving = table.valid & (table.track_cnt >= params.velocity_min_count)
+    return table.replace(un_pts=un), _velocity(un, table.un_pts, moving, dt)
+
+
+class RightView(NamedTuple):
+    """Camera 1's observations of the left features (VINS-Fusion stereo), each ``(B, K, ...)``."""
+
+    uv: Tensor
+    xy: Tensor
+    velocity: Tensor
+    valid: Tensor
+
+
+def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tensor, camera1, dt: Tensor,
+                params: TrackerParams, *, stage=no_stage) -> Tuple[FeatureTable, RightView]:
+    """VINS-Fusion's stereo step (spec §6.2 step 6): LK from the left image to ``right`` (3 levels,
+    no guess), with FLOW_BACK the backward check (3 levels, from the right result) and the right
+    ``inBorder``; camera-1 undistortion and a right velocity where the slot also had a right
+    observation in the previous frame. The left features are not reduced."""
+    valid = table.valid & tracked.unsqueeze(-1)
+    with stage("pyramid"):
+        rpyr = image_pyramid(right, params)
+    with stage("lk"):
+        ruv, rst = _lk(pyr, rpyr, table.pts, valid, params)
+        if params.flow_back:
+            rst = _flow_back(pyr, rpyr, table.pts, ruv, rst, params, levels=params.lk_max_level, from_start=False)
+    if params.flow_back:
+        rst = rst & in_border(ruv, right.shape[-1], right.shape[-2], params.border_size)
+    rvalid = valid & rst
+    uv = torch.where(rvalid.unsqueeze(-1), ruv.to(table.pts.dtype), torch.zeros_like(table.pts))
+    with stage("undistort"):
+        xy = lift_normalised(camera1, uv, rvalid)
+    vel = _velocity(xy, table.right_un, rvalid & table.right_valid, dt)
+    return table.replace(right_un=xy, right_valid=rvalid), RightView(uv, xy, vel, rvalid)
+
+
+
+
+# ---------------------------------------------------------------------------------------------
+# the estimator's hooks (VINS-Fusion)
+
+
+def remove_features(table: FeatureTable, drop: Tensor) -> FeatureTable:
+    """VINS-Fusion ``removeOutliers`` (spec §6.5): drop the slots where ``drop (B, K)`` is True;
+    the rest is compacted (every column, so a prediction stays with its feature)."""
+    return table.compact(table.valid & ~drop).committed()
+
+
+def set_prediction(table: FeatureTable, ids: Tensor, uv: Tensor, valid: Tensor) -> Tuple[FeatureTable, Tensor]:
+    """VINS-Fusion ``setPrediction`` (spec §6.4): the predicted pixel of each feature by id (the first
+    valid entry with its id), else its current pixel. ``ids (B, M)`` int64, ``uv (B, M, 2)`` pixels,
+    ``valid (B, M)`` bool. Returns the table and ``has_prediction (B,)``: a stream with at least one
+    predicted feature tracks from the predictions in its next step."""
+    match = (table.ids.unsqueeze(-1) == ids.unsqueeze(1)) & valid.unsqueeze(1) & table.valid.unsqueeze(-1)  # (B, K, M)
+    has = match.any(-1)
+    first = match.to(torch.int8).argmax(-1)
+    pred = torch.gather(uv.to(table.pts.dtype), 1, first.unsqueeze(-1).expand(-1, -1, 2))
+    return table.replace(prediction=torch.where(has.unsqueeze(-1), pred, table.pts)), has.any(-1)
+
+
+__all__ = [
+    "equalize", "image_pyramid", "select_pyramid", "track_features", "in_border", "lift_normalised",
+    "virtual_pinhole", "reject_with_f", "set_mask", "add_points", "update_id", "undistorted_points",
+    "track_right", "remove_features", "set_prediction", "Detection", "RightView", "no_stage", "where_streams",
+]

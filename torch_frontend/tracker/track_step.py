@@ -1,0 +1,223 @@
+"""One pure tracker step: ``state, frame = step(state, images, timestamps, params)``.
+
+Convention:
+    ``images (B, 1, H, W)`` uint8 (``(B, H, W)`` and float 0..255 accepted at the door: rounded and
+    clamped as cv_bridge would), ``timestamps (B,)`` float64 seconds, ``active (B,)`` bool (a stream
+    with False is left exactly as it was, e.g. a sequence that has ended). The state is not
+    modified: the step returns a new :class:`TrackerState` and a :class:`FeatureFrame`.
+
+    Mono (VINS-Mono ``feature_tracker``, spec §3): clock rules -> CLAHE -> pyramid -> LK, inBorder,
+    compaction, ``track_cnt += 1`` -> on published frames rejectWithF, setMask, addPoints ->
+    updateID -> undistortedPoints. Fusion (VINS-Fusion tracker, spec §6): every image is tracked
+    and detects, no CLAHE and no rejectWithF, ids at detection, optional stereo.
+
+:func:`step` validates its inputs once; :func:`step_impl` is the same step on validated inputs
+(what ``FeatureTracker`` calls after its own checks).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional, Tuple
+
+import torch
+
+from .._checks import as_image_batch, check_shape
+from .clock import ClockDecision, count_published, mono_clock
+from .frame import FeatureFrame
+from .params import TrackerParams
+from .stages import (
+    add_points,
+    equalize,
+    image_pyramid,
+    no_stage,
+    reject_with_f,
+    select_pyramid,
+    set_mask,
+    track_features,
+    track_right,
+    undistorted_points,
+    update_id,
+)
+from .state import TrackerState
+
+Tensor = torch.Tensor
+
+
+# ---------------------------------------------------------------------------------------------
+# the door
+
+
+def check_images(images, params: TrackerParams, batch: int, device, name: str = "images",
+                 size: Optional[Tuple[int, int]] = None) -> Tensor:
+    """``images`` as ``(B, 1, H, W)`` uint8 on ``device``. Mono: ``H, W`` must be the config's;
+    fusion takes any size the kernels can work on, but ``size`` (the previous image's ``(H, W)``)
+    when given: LK needs both images of a pair at one size."""
+    img = as_image_batch(torch.as_tensor(images), name)
+    if img.shape[0] != batch:
+        raise ValueError(f"{name}: expected {batch} streams (B, 1, H, W), got {tuple(img.shape)}")
+    hw = (int(img.shape[-2]), int(img.shape[-1]))
+    if params.mode == "mono" and hw != (params.height, params.width):
+        raise ValueError(f"{name}: image size {hw[1]}x{hw[0]} differs from the config's "
+                         f"image_width x image_height = {params.width}x{params.height}")
+    if size is not None and hw != tuple(size):
+        raise ValueError(f"{name}: image size {hw[1]}x{hw[0]} differs from the previous image's {size[1]}x{size[0]}")
+    if params.mode != "mono":
+        params.check_image_size(*hw)
+    img = img.to(device)
+    if img.dtype != torch.uint8:
+        # VINS works on 8-bit images; float input is rounded and clamped the way cv_bridge would.
+        img = img.round().clamp(0, 255).to(torch.uint8)
+    return img
+
+
+def check_timestamps(timestamps, batch: int, device) -> Tensor:
+    """``(B,)`` float64 finite seconds on ``device`` (a scalar is broadcast to every stream)."""
+    t = torch.as_tensor(timestamps, dtype=torch.float64)
+    if t.dim() == 0:
+        t = t.expand(batch)
+    check_shape(t, (batch,), "timestamps")
+    if not torch.isfinite(t).all():
+        raise ValueError("timestamps: expected finite seconds, got a NaN or infinity")
+    return t.to(device)
+
+
+def check_active(active, batch: int, device) -> Tensor:
+    """``(B,)`` bool on ``device``; None means every stream."""
+    if active is None:
+        return torch.ones(batch, dtype=torch.bool, device=device)
+    a = torch.as_tensor(active, device=device).to(torch.bool)
+    check_shape(a, (batch,), "active")
+    return a
+
+
+def step(state: TrackerState, images, timestamps, params: TrackerParams, *, right=None, active=None,
+         stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
+    """One tracker step for B streams: validate, then :func:`step_impl`.
+
+    Args:
+        state: the streams' state (``TrackerState.initial(...)`` or the previous step's).
+        images: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float 0..255.
+        timestamps: ``(B,)`` seconds (float64 tensor or sequence), or one number for every stream.
+        params: the static settings (:class:`TrackerParams`, with the cameras).
+        right: fusion stereo only: camera 1's images, tracked left -> right with the same ids.
+        active: optional ``(B,)`` bool; streams with False are left exactly as they were.
+        stage: optional ``stage(name)`` context-manager factory (timing / labels).
+
+    Returns:
+        ``(new_state, frame)``.
+    """
+    img, t, arrived, r = check_inputs(state, params, images, timestamps, right, active)
+    return step_impl(state, img, t, params, right=r, active=arrived, stage=stage)
+
+
+def check_inputs(state: TrackerState, params: TrackerParams, images, timestamps, right=None, active=None,
+                 config_name: str = "the config"):
+    """The door of :func:`step`: ``(images, timestamps, active, right)`` checked and normalised."""
+    B, dev = state.batch, state.has_image.device
+    prev = None if state.prev_pyramid is None else tuple(state.prev_pyramid.levels[0].shape[-2:])
+    img = check_images(images, params, B, dev, size=prev)
+    t = check_timestamps(timestamps, B, dev)
+    arrived = check_active(active, B, dev)
+    r = None
+    if right is not None:
+        if params.mode == "mono":
+            raise ValueError("right: stereo images are only supported with mode='fusion'")
+        if params.camera1 is None:
+            raise ValueError(f"right: {config_name} has no cam1_calib (num_of_cam 2)")
+        r = check_images(right, params, B, dev, "right", size=tuple(img.shape[-2:]))
+    return img, t, arrived, r
+
+
+def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams, *, right: Optional[Tensor],
+              active: Tensor, stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
+    """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
+    bool, all on the state's device)."""
+    if params.mode == "mono":
+        return _mono(state, img, t, params, active, stage)
+    return _fusion(state, img, t, right, params, active, stage)
+
+
+# ---------------------------------------------------------------------------------------------
+# the two modes
+
+
+def _track(state: TrackerState, img: Tensor, tracked: Tensor, params: TrackerParams, stage):
+    """CLAHE, pyramid and LK (``readImage`` up to ``track_cnt += 1``) for the ``tracked`` streams.
+    Returns ``(table, pyramid, equalised image, has_prediction after this step)``."""
+    with stage("clahe"):
+        img_eq = equalize(img, params)
+    with stage("pyramid"):
+        pyr = image_pyramid(img_eq, params)
+    prev_pyr = state.prev_pyramid if state.prev_pyramid is not None else pyr
+    run = tracked & state.has_image  # streams with a previous image to track from
+    table = track_features(state.features, prev_pyr, pyr, run, tracked, state.has_prediction, params, stage=stage)
+    return table, pyr, img_eq, state.has_prediction & ~run  # a prediction is consumed by its step
+
+
+def _detect(table, img_eq, detect: Tensor, params: TrackerParams, stage):
+    """setMask and addPoints for the ``detect`` streams (on the image's own size, as VINS-Fusion;
+    mono checked at the door that it is the config's)."""
+    base = params.fisheye_mask if params.uses_fisheye_mask else None
+    table, detection = set_mask(table, detect, params, base, img_eq.shape[-2], img_eq.shape[-1], stage=stage)
+    return add_points(table, img_eq, detection, params, stage=stage)
+
+
+def _commit(state: TrackerState, table, next_id: Tensor, t: Tensor, pyr, tracked: Tensor, **changes) -> TrackerState:
+    """The new state: streams in ``tracked`` take this step's table, id counter, time and pyramid;
+    the others keep theirs exactly."""
+    return dataclasses.replace(
+        state, features=table.committed().where_streams(tracked, state.features),
+        next_id=torch.where(tracked, next_id, state.next_id), prev_time=torch.where(tracked, t, state.prev_time),
+        prev_pyramid=select_pyramid(tracked, pyr, state.prev_pyramid), has_image=state.has_image | tracked,
+        **changes)
+
+
+def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, present: Tensor,
+           decision: ClockDecision, sent: Tensor, t: Tensor, **extra) -> FeatureFrame:
+    """The published frame, from the committed table (copies: the frame never aliases the state)."""
+    f = new.features
+    return FeatureFrame(
+        ids=f.ids.clone(), uv=f.pts.clone(), xy=f.un_pts.clone(),
+        velocity=torch.where((tracked.unsqueeze(-1) & f.valid).unsqueeze(-1), velocity, torch.zeros_like(velocity)),
+        track_count=f.track_cnt.clone(), valid=valid, present=present, published=decision.publish, sent=sent,
+        restarted=decision.restarted, tracked=decision.tracked, timestamps=t, **extra)
+
+
+def _mono(state, img, t, params, arrived, stage):
+    clock, decision = mono_clock(state.clock, t, arrived, params)
+    tracked, publish = decision.tracked, decision.publish
+    table, pyr, img_eq, has_prediction = _track(state, img, tracked, params, stage)
+    table = reject_with_f(table, publish, params.camera, params, stage=stage).replace(prev_pts=None)
+    table = _detect(table, img_eq, publish, params, stage)
+    table, velocity = undistorted_points(table, params.camera, t - state.prev_time, params, stage=stage)
+    table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
+    clock, sent = count_published(clock, publish)
+    new = _commit(state, table, next_id, t, pyr, tracked, clock=clock, has_prediction=has_prediction)
+    f = new.features
+    # VINS-Mono publishes features tracked at least once after detection (spec §3.11)
+    valid = f.valid & (f.track_cnt > 1) & publish.unsqueeze(-1)
+    return new, _frame(new, velocity, tracked, valid, f.valid.clone(), decision, sent, t)
+
+
+def _fusion(state, img, t, right, params, arrived, stage):
+    # VINS-Fusion: no clock rules, every image is tracked, published and detects (spec §6.2, §6.7)
+    decision = ClockDecision(tracked=arrived, publish=arrived, restarted=torch.zeros_like(arrived))
+    table, pyr, img_eq, has_prediction = _track(state, img, arrived, params, stage)
+    table = _detect(table, img_eq, arrived, params, stage)
+    table, next_id = update_id(table, state.next_id)  # ids at detection (spec §6.2 step 4)
+    dt = t - state.prev_time
+    table, velocity = undistorted_points(table, params.camera, dt, params, stage=stage)
+    extra = dict(prev_uv=table.prev_pts, prev_valid=table.valid & (table.track_cnt >= 2) & arrived.unsqueeze(-1))
+    if right is not None:
+        table, view = track_right(table, pyr, right, arrived, params.camera1, dt, params, stage=stage)
+        extra.update(right_uv=view.uv, right_xy=view.xy, right_velocity=view.velocity,
+                     right_valid=view.valid & arrived.unsqueeze(-1))
+    else:
+        table = table.replace(right_un=torch.zeros_like(table.right_un), right_valid=torch.zeros_like(table.right_valid))
+    new = _commit(state, table, next_id, t, pyr, arrived, has_prediction=has_prediction)
+    valid = new.features.valid & arrived.unsqueeze(-1)
+    return new, _frame(new, velocity, arrived, valid, valid.clone(), decision, arrived.clone(), t, **extra)
+
+
+__all__ = ["step", "step_impl", "check_inputs", "check_images", "check_timestamps", "check_active"]
