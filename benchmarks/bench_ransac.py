@@ -157,8 +157,7 @@ def tracker_rows(args, device) -> list:
         means, firsts, cv_means, iters = [], [], [], []
         for _ in range(args.repeats):  # the whole sequence, each time from cold caches
             # the process-wide sample-table caches start empty, as in a fresh tracker
-            _ransac._SUBSET_CACHE.clear()
-            _ransac._RAW_CACHE.clear()
+            _ransac._clear_sample_caches()
             ts = []
             for p1, p2, v in torch_calls:
                 sync(device)

@@ -9,6 +9,7 @@ The pose graph must accept loops at the revisits and nowhere else, and halve the
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
 import pytest
@@ -228,6 +229,58 @@ def test_bad_input(scene, tmp_path):
     assert not (tmp_path / "no").exists()
     with pytest.raises(ValueError, match="mode"):
         PoseGraph(seq.camera, voc, mode="3dof")
+
+
+def _listing(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_save_never_deletes_what_it_did_not_write(scene, tmp_path):
+    """``save`` (issue 20) refuses a folder holding a user's file, naming it, and never moves a
+    file at the target away; nothing is touched and no temporary is left then."""
+    seq, kfs, voc = scene
+    pg = _run(seq, voc, kfs[:3])
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    (mine / "0_keypoints.txt").write_text("a pose-graph name, but the folder is the user's")
+    before = _listing(mine)
+    with pytest.raises(DataError, match=r"mine: not replaced: .*did not write: notes\.txt \(no "):
+        pg.save(mine)
+    assert _listing(mine) == before
+    f = tmp_path / "graph_file"
+    f.write_text("x")
+    with pytest.raises(DataError, match=r"graph_file: .*is a file"):
+        pg.save(f)
+    assert f.read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["graph_file", "mine"]  # no hidden .old / .tmp
+
+
+def test_save_replaces_its_own_folders_and_legacy_ones(scene, tmp_path):
+    """``save`` replaces, as a whole, a folder an earlier save wrote (its marker lists every file)
+    and one saved before the marker existed when it holds only pose-graph files (VINS's names);
+    a user's file added to a saved folder makes it refuse. ``load`` reads folders without the
+    marker."""
+    from torch_frontend._atomic import MARKER
+
+    seq, kfs, voc = scene
+    small, big = _run(seq, voc, kfs[:3]), _run(seq, voc, kfs[:5])
+    g = tmp_path / "g"
+    big.save(g)
+    small.save(g)  # an earlier save: replaced, the extra keyframes' files are gone
+    assert sorted(p.name for p in g.iterdir()) == sorted(
+        [MARKER, "pose_graph.txt", *(f"{i}_{n}" for i in range(3) for n in ("keypoints.txt", "briefdes.dat"))])
+    assert sorted(json.loads((g / MARKER).read_text())["files"]) == sorted(p.name for p in g.iterdir() if p.name != MARKER)
+    (g / MARKER).unlink()  # as saved before the marker existed (or by VINS)
+    assert PoseGraph(seq.camera, voc).load(g) == 3
+    big.save(g)
+    assert len((g / "pose_graph.txt").read_text().splitlines()) == 5 and (g / MARKER).is_file()
+    (g / "my_notes.txt").write_text("keep me")
+    before = _listing(g)
+    with pytest.raises(DataError, match=rf"did not write: my_notes\.txt \(not listed in its {MARKER}\)"):
+        small.save(g)
+    assert _listing(g) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g"]
 
 
 def test_six_dof_mode(scene):

@@ -275,3 +275,17 @@ def test_inputs_are_checked_once_at_the_door():
         finally:
             sys.setprofile(None)
     assert dict(calls) == {"as_image_batch": 3, "check_shape": 3}, dict(calls)
+
+
+def test_params_refuse_values_that_would_silently_publish_nothing():
+    """Values built by hand (not read from a file, whose readers check them) are checked too."""
+    from torch_frontend.camera import PinholeCamera
+
+    cfg = tf.load_config(CFG)
+    with pytest.raises(ValueError, match="freq"):
+        TrackerParams.from_config(cfg, freq=-5)
+    with pytest.raises(ValueError, match="F_threshold"):
+        TrackerParams.from_config(cfg, F_threshold=float("nan"))
+    bad = PinholeCamera(k1=0.0, k2=0.0, p1=0.0, p2=0.0, fx=0.0, fy=460.0, cx=376.0, cy=240.0, width=752, height=480)
+    with pytest.raises(ValueError, match="camera.fx"):
+        FeatureTracker(dataclasses.replace(cfg, camera=bad))

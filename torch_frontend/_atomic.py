@@ -1,18 +1,80 @@
-"""Atomic file writes: a file goes to a hidden temporary name in the same folder and is renamed
-over the final name (``os.replace``), so an interrupted or failed write leaves no partial file
-under the final name. Used by every writer (run outputs, trajectories, the pose graph, the
-vocabulary)."""
+"""Atomic writes of single files and of whole output folders, and which folders the library may
+replace. Used by every writer (run outputs, trajectories, the pose graph, the vocabulary).
+
+Files: ``atomic_path`` / ``write_*_atomic`` write to a hidden temporary name beside the final
+name and rename it over the final name (``os.replace``): an interrupted or failed write leaves
+no partial file under the final name.
+
+Folders: a :class:`StagedFolder` is a fresh hidden temporary folder beside its target; the writer
+fills it and ``commit()`` writes the marker ``written-by-torch-frontend.json`` (the list of what
+the library wrote) into it and swaps it in for the target in one step, so the target holds either
+its complete old or its complete new contents, never a mix. On Linux the swap is one
+``renameat2(RENAME_EXCHANGE)``; elsewhere (or on a file system without it) it is two renames with
+SIGINT/SIGTERM deferred in between. A failed or interrupted writer removes its temporary folder.
+
+Convention (what may be replaced):
+    A folder is replaced only when it is absent, empty, or written by the library: it holds the
+    marker and nothing the marker does not list (a sub-folder with a marker of its own is judged by
+    that one), or, for a folder written before the marker existed, it has no marker and every
+    entry matches the writer's ``legacy`` patterns (the names it writes, and the temporaries older
+    versions left behind). Anything else, or a file at the target, raises
+    :class:`OutputFolderError` naming the folder, the foreign entries and why; nothing is deleted,
+    moved or written then. The check runs when the writer starts and again just before the swap.
+
+    Temporaries are named ``.<name>.tf<pid>-<random>.tmp`` (``.old`` for the backup of a two-rename
+    swap), ``<pid>`` being the writing process. Every new write of a target first removes those of
+    its stale temporaries whose process no longer runs on this machine (a run killed by SIGKILL or
+    a power cut); those of a live process (a concurrent writer) are left alone, and a backup left by
+    a swap cut between its two renames is moved back when the target is missing (or an empty
+    folder). Nothing else is ever removed.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import functools
+import json
 import os
+import re
 import shutil
+import signal
+import sys
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, List, Optional, Sequence, Set, Tuple
 
-__all__ = ["atomic_path", "replace_dir", "write_bytes_atomic", "write_text_atomic"]
+from .errors import DataError
+
+__all__ = [
+    "MARKER",
+    "OutputFolderError",
+    "StagedFolder",
+    "atomic_path",
+    "check_replaceable",
+    "clean_stale",
+    "foreign_entries",
+    "legacy_temporaries",
+    "replace_dir",
+    "write_bytes_atomic",
+    "write_text_atomic",
+]
+
+#: the file the library writes into every folder it owns (JSON: ``written_by``, ``kind``,
+#: ``folders``, ``files``, paths relative to the folder, ``/``-separated)
+MARKER = "written-by-torch-frontend.json"
+_WRITTEN_BY = "torch-frontend"
+_TAG = "tf"  # temporaries: .<name>.tf<pid>-<random>.tmp|.old
+# how many foreign entries an error names (the walk stops there: a big foreign tree costs nothing)
+_SHOWN = 3
+
+
+class OutputFolderError(DataError):
+    """A folder the library was asked to replace holds something it did not write, or is a file."""
+
+
+# ----------------------------------------------------------------------------------------------
+# temporaries
 
 
 def _umask() -> int:
@@ -26,12 +88,67 @@ def _default_mode(tmp: Path, is_dir: bool = False) -> None:
     os.chmod(tmp, (0o777 if is_dir else 0o666) & ~_umask())
 
 
+def _temp_prefix(name: str) -> str:
+    return f".{name}.{_TAG}{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (True when it cannot be told)."""
+    if os.name != "posix":  # os.kill would terminate it on Windows: never clean there
+        return True
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: it runs, as another user
+        return True
+    return True
+
+
+def _absent_or_empty(p: Path) -> bool:
+    if not os.path.lexists(p):
+        return True
+    if p.is_symlink() or not p.is_dir():
+        return False
+    with os.scandir(p) as it:
+        return next(it, None) is None
+
+
+def clean_stale(target: Path) -> List[Path]:
+    """Remove the stale temporaries of ``target`` (see the module docstring); returns them."""
+    target = Path(target)
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.{_TAG}(\d+)-[A-Za-z0-9_]+\.(tmp|old)")
+    removed: List[Path] = []
+    try:
+        entries = [e for e in os.scandir(target.parent) if e.name.startswith(f".{target.name}.{_TAG}")]
+    except OSError:
+        return removed
+    for e in sorted(entries, key=lambda e: e.name):
+        m = pattern.fullmatch(e.name)
+        if m is None or e.is_symlink() or _pid_alive(int(m.group(1))):
+            continue
+        p = Path(e.path)
+        if m.group(2) == "old" and e.is_dir() and _absent_or_empty(target):
+            if os.path.lexists(target):
+                os.rmdir(target)
+            os.rename(p, target)  # a swap cut between its two renames: the old contents come back
+        elif e.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it to ``path``, else delete it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    clean_stale(path)
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name), suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_p = Path(tmp)
     try:
@@ -52,18 +169,259 @@ def write_text_atomic(path: Path, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
 
 
-def replace_dir(tmp_dir: Path, final: Path) -> None:
-    """Move a finished temporary folder to ``final`` (an existing ``final`` is replaced)."""
-    _default_mode(tmp_dir, is_dir=True)
-    for sub in tmp_dir.rglob("*"):
-        if sub.is_dir():
+def legacy_temporaries(*names: str) -> Tuple[str, ...]:
+    """``legacy`` patterns of the temporaries versions before the marker left for ``names``:
+    ``.<name>.<8 random>.tmp`` (a file, or a folder and its contents) and ``.<name>.old-<pid>``."""
+    pats = []
+    for n in names:
+        pats.append(rf"\.{re.escape(n)}\.[a-z0-9_]{{8}}\.tmp(/.*)?")
+        pats.append(rf"\.{re.escape(n)}\.old-\d+(/.*)?")
+    return tuple(pats)
+
+
+# ----------------------------------------------------------------------------------------------
+# ownership
+
+
+def _read_marker(folder: Path) -> Optional[Tuple[Set[str], Set[str]]]:
+    """``(files, folders)`` of ``folder``'s marker, or None (no marker, or not a valid one)."""
+    p = folder / MARKER
+    if p.is_symlink() or not p.is_file():
+        return None
+    try:
+        m = json.loads(p.read_text(encoding="utf-8"))
+        if m.get("written_by") != _WRITTEN_BY:
+            return None
+        return {str(f) for f in m["files"]}, {str(f) for f in m["folders"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def foreign_entries(folder: Path, legacy: Sequence[str] = (), limit: int = _SHOWN) -> List[str]:
+    """Up to ``limit`` entries of ``folder`` (paths relative to it, folders ending in ``/``) that
+    the library did not write (module docstring); ``[]``: the folder may be replaced."""
+    pats = [re.compile(p) for p in legacy]
+    found: List[str] = []
+
+    def walk(d: Path, shown: str, rel: str, marker: Optional[Tuple[Set[str], Set[str]]], top: bool) -> None:
+        for e in sorted(os.scandir(d), key=lambda e: e.name):
+            if len(found) >= limit:
+                return
+            r = rel + e.name
+            is_dir = e.is_dir(follow_symlinks=False)
+            if marker is not None:
+                owned = (top and e.name == MARKER and not is_dir) or r in (marker[1] if is_dir else marker[0])
+            else:
+                owned = any(p.fullmatch(r) for p in pats)
+            if not owned:
+                found.append(shown + e.name + ("/" if is_dir else ""))
+            elif is_dir:
+                sub = _read_marker(Path(e.path))
+                if sub is not None:  # a folder with its own marker answers for itself
+                    walk(Path(e.path), shown + e.name + "/", "", sub, True)
+                else:
+                    walk(Path(e.path), shown + e.name + "/", r + "/", marker, False)
+
+    walk(Path(folder), "", "", _read_marker(Path(folder)), True)
+    return found
+
+
+def check_replaceable(target: Path, legacy: Sequence[str] = ()) -> None:
+    """Raise :class:`OutputFolderError` unless ``target`` is absent, an empty folder or a folder
+    the library wrote (module docstring)."""
+    target = Path(target)
+    if not os.path.lexists(target):
+        return
+    if not target.is_dir():
+        raise OutputFolderError(f"{target}: cannot write the outputs here: it is a file, not a folder "
+                                f"(left as it is; choose another name)")
+    foreign = foreign_entries(target, legacy, limit=_SHOWN + 1)
+    if foreign:
+        shown = ", ".join(foreign[:_SHOWN]) + (" and more" if len(foreign) > _SHOWN else "")
+        why = (f"not listed in its {MARKER}" if _read_marker(target) is not None
+               else f"no {MARKER} marker here, and not a name torch-frontend writes")
+        raise OutputFolderError(f"{target}: not replaced: it holds files torch-frontend did not write: "
+                                f"{shown} ({why}); move them away or choose another folder")
+
+
+def _manifest(folder: Path, kind: str) -> str:
+    """The marker's text for the finished ``folder`` (sorted, so equal contents give equal bytes)."""
+    files: List[str] = []
+    folders: List[str] = []
+
+    def walk(d: Path, rel: str) -> None:
+        for e in os.scandir(d):
+            r = rel + e.name
+            if e.is_dir(follow_symlinks=False):
+                folders.append(r)
+                if _read_marker(Path(e.path)) is None:  # else its own marker lists its contents
+                    walk(Path(e.path), r + "/")
+            elif rel or e.name != MARKER:
+                files.append(r)
+
+    walk(folder, "")
+    m = {
+        "written_by": _WRITTEN_BY,
+        "kind": kind,
+        "about": "this folder was written by torch-frontend as a whole; the next write replaces it as a "
+                 "whole, and refuses to while it holds anything not listed here",
+        "folders": sorted(folders),
+        "files": sorted(files),
+    }
+    return json.dumps(m, indent=1) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------
+# swapping folders
+
+
+@functools.cache
+def _renameat2():
+    """libc's ``renameat2`` (Linux), or None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+_AT_FDCWD = -100
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the paths ``a`` and ``b`` in one step; False where the system cannot."""
+    fn = _renameat2()
+    if fn is None:
+        return False
+    import ctypes
+
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):  # kernel or file system without it
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """SIGINT/SIGTERM wait until the block is done (POSIX), so a swap is never cut in two."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _swap_in(new: Path, final: Path) -> Optional[Path]:
+    """Put the folder ``new`` at ``final``; returns where the old contents went (None: none)."""
+    try:
+        os.rename(new, final)  # final absent or an empty folder: one rename
+        return None
+    except OSError as exc:
+        if exc.errno not in (errno.EEXIST, errno.ENOTEMPTY) or not final.is_dir():
+            raise
+    if _exchange(new, final):
+        return new
+    backup = Path(tempfile.mkdtemp(prefix=_temp_prefix(final.name), suffix=".old", dir=final.parent))
+    os.rmdir(backup)  # the name is reserved; renaming onto an empty folder fails on Windows
+    os.rename(final, backup)
+    try:
+        os.rename(new, final)
+    except BaseException:
+        os.rename(backup, final)
+        raise
+    return backup
+
+
+def _set_modes(folder: Path) -> None:
+    _default_mode(folder, is_dir=True)
+    for sub in folder.rglob("*"):
+        if sub.is_dir() and not sub.is_symlink():
             _default_mode(sub, is_dir=True)
-    old = None
-    if final.exists():
-        old = final.parent / f".{final.name}.old-{os.getpid()}"
-        if old.exists():
-            shutil.rmtree(old)
-        os.replace(final, old)
-    os.replace(tmp_dir, final)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+
+
+def replace_dir(tmp_dir: Path, final: Path) -> None:
+    """Move a finished temporary folder to ``final`` in one step (an existing folder ``final`` is
+    replaced and removed, whatever it holds: the library's writers use :class:`StagedFolder`, which
+    checks first). A file at ``final`` is refused (``OutputFolderError``)."""
+    tmp_dir, final = Path(tmp_dir), Path(final)
+    if os.path.lexists(final) and not final.is_dir():
+        raise OutputFolderError(f"{final}: is a file, not a folder (left as it is)")
+    _set_modes(tmp_dir)
+    with _signals_deferred():
+        old = _swap_in(tmp_dir, final)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+class StagedFolder:
+    """A temporary folder beside ``target`` that replaces it as a whole on :meth:`commit`.
+
+    Args:
+        target: the folder to (re)write. Its parent must exist.
+        kind: what the folder holds (``"track"``, ``"loop"``, ``"pose_graph"``: the marker's ``kind``).
+        legacy: regular expressions (full match, ``/``-separated relative paths) of what this
+            writer wrote before the marker existed (module docstring).
+
+    Raises:
+        OutputFolderError: ``target`` holds something the library did not write, or is a file
+            (checked here, before any work, and again in :meth:`commit`).
+
+    ``path`` is the folder to fill. As a context manager: commits on success, removes the
+    temporary folder on any exception (``KeyboardInterrupt`` included).
+    """
+
+    def __init__(self, target, kind: str, legacy: Sequence[str] = ()):
+        self.target = Path(os.path.realpath(target))  # a symlinked target: its folder is rewritten
+        self.kind = kind
+        self.legacy = tuple(legacy)
+        check_replaceable(self.target, self.legacy)
+        clean_stale(self.target)
+        self.path = Path(tempfile.mkdtemp(prefix=_temp_prefix(self.target.name), suffix=".tmp",
+                                          dir=self.target.parent))
+        self._open = True
+
+    def commit(self) -> Path:
+        """Write the marker into ``path`` and swap it in for the target; returns the target."""
+        if not self._open:
+            raise RuntimeError(f"{self.target}: StagedFolder already committed or aborted")
+        try:
+            (self.path / MARKER).write_bytes(_manifest(self.path, self.kind).encode("utf-8"))
+            _set_modes(self.path)
+            with _signals_deferred():
+                check_replaceable(self.target, self.legacy)
+                old = _swap_in(self.path, self.target)
+                self._open = False
+                if old is not None:
+                    shutil.rmtree(old, ignore_errors=True)
+        except BaseException:
+            self.abort()
+            raise
+        return self.target
+
+    def abort(self) -> None:
+        """Remove the temporary folder (the target is not touched)."""
+        if self._open:
+            self._open = False
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    def __enter__(self) -> StagedFolder:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+        return False

@@ -23,6 +23,7 @@ its CPU value and its one-pass value, and a test that both give the same result.
 from __future__ import annotations
 
 import contextlib
+import threading
 from dataclasses import dataclass
 from typing import Dict, Iterator, List, Optional, Tuple
 
@@ -151,7 +152,9 @@ def for_device(device) -> Strategy:
     return STRATEGIES.get(kind, ONE_PASS)
 
 
-_REFERENCE_ONLY = [False]
+# per thread: a test holding one thread in reference_forms() must not switch the kernels of other
+# threads, and interleaved blocks in two threads must not leave the switch on when both have left
+_REFERENCE_ONLY = threading.local()
 
 
 def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
@@ -160,7 +163,7 @@ def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
 
     The fast form of every kernel step performs the reference form's operations in the same order
     (in place, or into a preallocated output), so both give bit-identical values."""
-    if _REFERENCE_ONLY[0]:
+    if getattr(_REFERENCE_ONLY, "on", False):
         return False
     for t in tensors:
         if t is not None and t.requires_grad:
@@ -171,10 +174,11 @@ def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
 @contextlib.contextmanager
 def reference_forms() -> Iterator[None]:
     """Within this block every kernel takes its reference (out-of-place, differentiable) form,
-    also without gradients: the tests compare it with the fast forms bit for bit."""
-    old = _REFERENCE_ONLY[0]
-    _REFERENCE_ONLY[0] = True
+    also without gradients: the tests compare it with the fast forms bit for bit. The switch holds
+    for the calling thread only (kernels running in other threads keep their fast forms)."""
+    old = getattr(_REFERENCE_ONLY, "on", False)
+    _REFERENCE_ONLY.on = True
     try:
         yield
     finally:
-        _REFERENCE_ONLY[0] = old
+        _REFERENCE_ONLY.on = old

@@ -20,12 +20,21 @@ does the same on a rendered sequence that revisits places (``pipelines.loop.demo
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
 wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
 stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
-130 when interrupted. A pipeline's ``OptionError`` names its option; the line names the flag.
+130 when interrupted (Ctrl-C, SIGINT), 143 on SIGTERM. A pipeline's ``OptionError`` names its
+option; the line names the flag.
+
+SIGINT and SIGTERM stop a command the same way (a ``KeyboardInterrupt``, while the command runs;
+the previous handlers come back after it): the run removes its temporary folder, so ``--out``
+keeps a complete set of outputs, the previous one, or the new one if the run had swapped it in
+already (``torch_frontend.outputs``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Dict, List, Sequence, Tuple
@@ -38,7 +47,8 @@ SAMPLE_DIR = PACKAGE_DIR / "data" / "euroc_mini"
 
 EXIT_DATA = 1
 EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
@@ -247,6 +257,13 @@ def _positive_float(s: str) -> float:
     return v
 
 
+def _frame_rate(s: str) -> float:
+    v = _positive_float(s)
+    if not math.isfinite(v):  # inf would put every frame at 0 s: the tracker would publish nothing
+        raise argparse.ArgumentTypeError(f"must be a finite frame rate > 0 (Hz), got {s}")
+    return v
+
+
 def _positive_int(s: str) -> int:
     try:
         v = int(s)
@@ -279,7 +296,7 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
                      help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
     src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
                      help="folder of images (timestamps from numeric names, or --fps)")
-    p.add_argument("--fps", type=_positive_float, default=None, metavar="F",
+    p.add_argument("--fps", type=_frame_rate, default=None, metavar="F",
                    help="frame rate of --images folders (timestamps i/F)")
     p.add_argument("--topic", default=None, metavar="T",
                    help="image topic of --bag inputs (default: the config's image_topic)")
@@ -449,6 +466,57 @@ def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
     return flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
 
 
+def _os_error_message(exc: OSError, out) -> str:
+    """One line for an ``OSError`` that reached the CLI: "cannot write" for the output folder
+    ``out``, a file in it or a hidden temporary beside it (or when no file is named), "cannot read"
+    for any other file (an input; the readers report their own files as ``DataError``)."""
+    name = getattr(exc, "filename", None)
+    verb = "write"
+    if name is not None and out is not None:
+        try:
+            target, where = Path(out).resolve(), Path(str(name)).resolve()
+            first = where.relative_to(target.parent).parts[:1] if target.parent in where.parents else ()
+            if not first or not (first[0] == target.name or first[0].startswith(".")):
+                verb = "read"
+        except (OSError, RuntimeError, ValueError):  # a name that does not resolve: keep "write"
+            pass
+    return f"cannot {verb}{f' {name}' if name is not None else ''}: {exc.strerror or exc}"
+
+
+class _Signalled(KeyboardInterrupt):
+    """SIGINT or SIGTERM as a ``KeyboardInterrupt``: every writer cleans up as on Ctrl-C."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_signalled(signum, frame) -> None:
+    raise _Signalled(signum)
+
+
+@contextlib.contextmanager
+def _interrupt_signals():
+    """SIGINT and SIGTERM raise :class:`_Signalled` inside the block; the previous handlers come
+    back after it. A signal ignored by whoever started us (``nohup``, a background job) stays
+    ignored; outside the main thread nothing changes."""
+    saved = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            prev = signal.getsignal(sig)
+            if prev is signal.SIG_IGN:
+                continue
+            signal.signal(sig, _raise_signalled)
+        except ValueError:  # not the main thread
+            continue
+        saved[sig] = signal.SIG_DFL if prev is None else prev
+    try:
+        yield
+    finally:
+        for sig, prev in saved.items():
+            signal.signal(sig, prev)
+
+
 def main(argv: List[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -456,7 +524,8 @@ def main(argv: List[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        return int(args.func(args) or 0)
+        with _interrupt_signals():
+            return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
         _error(str(exc))
         return EXIT_USAGE
@@ -466,12 +535,13 @@ def main(argv: List[str] | None = None) -> int:
     except DataError as exc:
         _error(str(exc))
         return EXIT_DATA
-    except KeyboardInterrupt:
-        _error("interrupted (no partial file left in the output folder)")
-        return EXIT_INTERRUPTED
-    except OSError as exc:  # e.g. --out is a file, a read-only folder, a full disk
-        where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-        _error(f"cannot write{where}: {exc.strerror or exc}")
+    except KeyboardInterrupt as exc:
+        term = getattr(exc, "signum", signal.SIGINT) == signal.SIGTERM
+        _error(f"interrupted{' (SIGTERM)' if term else ''}: no partial output left (the output folder holds "
+               f"its previous complete outputs, or this run's if it had finished writing them)")
+        return EXIT_TERMINATED if term else EXIT_INTERRUPTED
+    except OSError as exc:  # e.g. --out is a file, a read-only folder, a full disk; an unreadable input
+        _error(_os_error_message(exc, getattr(args, "out", None)))
         return EXIT_DATA
 
 

@@ -202,8 +202,10 @@ def load_config(path: PathLike) -> TrackerConfig:
         calibration files, or ``camera=None`` for an estimator-only config.
 
     Raises:
-        ConfigError: a missing file, a missing required key, a wrong type or an unknown
-            ``model_type``; the message names the file, the key and what was expected.
+        ConfigError: a missing file, a missing required key, a wrong type, an unknown
+            ``model_type``, a negative ``freq`` or a camera value the model cannot work with
+            (``fx: 0``: ``CameraModel.param_problems``); the message names the file, the key and
+            what was expected.
     """
     from .camera import camera_from_config
 
@@ -231,6 +233,8 @@ def load_config(path: PathLike) -> TrackerConfig:
     cfg.max_cnt = _get_int(raw, "max_cnt", sp, 150 if tracker_default is None else tracker_default)
     cfg.min_dist = _get_int(raw, "min_dist", sp, 30 if tracker_default is None else tracker_default)
     freq = _get_int(raw, "freq", sp, 10)
+    if freq < 0:  # VINS would publish nothing at all (no rate is <= a negative FREQ)
+        raise ConfigError(f"must be a publish rate >= 0 in Hz (0 means 100, as in VINS-Mono), got {freq}", sp, "freq")
     cfg.freq = 100 if freq == 0 else freq  # VINS-Mono: FREQ 0 means 100 Hz
     cfg.F_threshold = _get_float(raw, "F_threshold", sp, 1.0)
     for flag in ("show_track", "equalize", "fisheye", "flow_back"):
@@ -284,7 +288,9 @@ def camera_from_sensor_yaml(path: PathLike):
     """Camera model of an ASL ``sensor.yaml`` (see the module docstring).
 
     Raises:
-        ConfigError: missing file or key, wrong list length, unsupported camera or distortion model.
+        ConfigError: missing file or key, wrong list length, unsupported camera or distortion model,
+            a value the model cannot work with (not finite, a focal length <= 0, a size <= 0),
+            naming the key and element (``intrinsics[0]``).
     """
     from .camera import KannalaBrandtCamera, PinholeCamera
 
@@ -293,19 +299,33 @@ def camera_from_sensor_yaml(path: PathLike):
     model = str(raw.get("camera_model", "pinhole")).lower()
     if model != "pinhole":
         raise ConfigError(f"unsupported camera_model {model!r} (expected 'pinhole')", p, "camera_model")
-    w, h = (int(x) for x in _numbers(raw, "resolution", 2, p))
+    res = _numbers(raw, "resolution", 2, p)
+    if not all(math.isfinite(x) and x > 0 and x == int(x) for x in res):
+        raise ConfigError(f"expected [width, height], positive integers, got {raw.get('resolution')!r}", p, "resolution")
+    w, h = (int(x) for x in res)
     fu, fv, cu, cv = _numbers(raw, "intrinsics", 4, p)
     dist = str(raw.get("distortion_model", "radial-tangential")).lower()
     name = str(raw.get("comment", p.parent.name))
     if dist in ("radial-tangential", "radtan", "plumb_bob"):
-        k1, k2, p1, p2 = _numbers(raw, "distortion_coefficients", 4, p)
-        return PinholeCamera(k1, k2, p1, p2, fu, fv, cu, cv, width=w, height=h, camera_name=name)
-    if dist in ("equidistant", "fisheye"):
-        k1, k2, k3, k4 = _numbers(raw, "distortion_coefficients", 4, p)
-        return KannalaBrandtCamera(k1, k2, k3, k4, fu, fv, cu, cv, width=w, height=h, camera_name=name)
-    raise ConfigError(
-        f"unsupported distortion_model {dist!r} (expected 'radial-tangential' or 'equidistant')", p, "distortion_model"
-    )
+        cls, names = PinholeCamera, ("k1", "k2", "p1", "p2", "fx", "fy", "cx", "cy")
+    elif dist in ("equidistant", "fisheye"):
+        # camodocal's k2..k5 are Kalibr's k1..k4 (the implicit k1 = 1)
+        cls, names = KannalaBrandtCamera, ("k2", "k3", "k4", "k5", "mu", "mv", "u0", "v0")
+    else:
+        raise ConfigError(
+            f"unsupported distortion_model {dist!r} (expected 'radial-tangential' or 'equidistant')", p,
+            "distortion_model"
+        )
+    coeffs = _numbers(raw, "distortion_coefficients", 4, p)
+    params = dict(zip(names, coeffs + [fu, fv, cu, cv]))
+    # the sensor.yaml key (and element) of each camodocal parameter, for the error message
+    keys = {n: f"distortion_coefficients[{i}]" for i, n in enumerate(names[:4])}
+    keys.update({n: f"intrinsics[{i}]" for i, n in enumerate(names[4:])})
+    problems = cls.param_problems(params)
+    if problems:
+        pname, problem = problems[0]
+        raise ConfigError(problem, p, keys[pname])
+    return cls(**params, width=w, height=h, camera_name=name)
 
 
 def config_from_sensor_yaml(path: PathLike, **overrides) -> TrackerConfig:

@@ -206,14 +206,17 @@ def _mask_batch(mask: torch.Tensor | None, B: int, H: int, W: int, device) -> to
     (None stays None: no mask)."""
     if mask is None:
         return None
+    if not isinstance(mask, torch.Tensor):
+        raise TypeError(f"mask: expected a torch.Tensor, got {type(mask).__name__}")
     m = mask
-    if m.dim() == 2:
-        m = m.unsqueeze(0).expand(B, H, W)
-    elif m.dim() == 4 and m.shape[1] == 1:
+    if m.dim() == 4 and m.shape[1] == 1:
         m = m[:, 0]
-    if m.dim() != 3 or tuple(m.shape) != (B, H, W):
+    # the shape is checked before a 2-D mask is expanded to B streams (expand's own error names no mask)
+    if not (tuple(m.shape) == (H, W) or tuple(m.shape) == (B, H, W)):
         raise ValueError(f"mask: expected shape (H, W), (B, H, W) or (B, 1, H, W) with B={B}, H={H}, W={W}, "
                          f"got {tuple(mask.shape)}")
+    if m.dim() == 2:
+        m = m.unsqueeze(0).expand(B, H, W)
     return (m != 0).to(device)
 
 

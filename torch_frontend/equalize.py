@@ -68,7 +68,8 @@ def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int,
     check_grid(x.shape[-2], x.shape[-1], gx, gy)
     if x.dtype != torch.uint8:
         x = x.round().clamp(0, 255).to(torch.uint8)
-    out = _clahe_impl(x[:, 0], float(clip_limit), gx, gy)
+    # _clahe_impl views the image as flat rows: a transposed / sliced image is copied first
+    out = _clahe_impl(x[:, 0].contiguous(), float(clip_limit), gx, gy)
     return out if squeeze else out.unsqueeze(1)
 
 
@@ -83,7 +84,7 @@ def check_grid(height: int, width: int, gx: int, gy: int) -> None:
 
 
 def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
-    """CLAHE of ``src`` ``(B, H, W)`` uint8 -> ``(B, H, W)`` uint8, no input checks.
+    """CLAHE of ``src`` ``(B, H, W)`` uint8, contiguous -> ``(B, H, W)`` uint8, no input checks.
 
     ``clip_limit`` as OpenCV (``<= 0``: no clipping); ``gx, gy`` tiles along x / y (>= 1, the image
     large enough for the padding: :func:`check_grid`).

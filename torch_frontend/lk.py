@@ -678,9 +678,10 @@ def track_lk(
         Pixel centres at integer coordinates. ``status`` is False for invalid lanes, for points whose
         level-0 window leaves ``[-win, W) x [-win, H)``, whose level-0 ``minEig`` is below the
         threshold, (with ``forward_backward``) that fail the check. Lanes with status False hold
-        whatever OpenCV would leave there (finite). Gradients flow to ``pts``, ``init_pts`` and float
-        images (through the pyramid) via unrolled iterations; the backward check is discrete (no
-        gradient). The values do not depend on whether gradients are recorded.
+        whatever OpenCV would leave there (finite); a lane whose ``init_pts`` is not finite gets
+        status False (OpenCV: 0) and holds its ``pts`` (OpenCV: the NaN guess). Gradients flow to
+        ``pts``, ``init_pts`` and float images (through the pyramid) via unrolled iterations; the
+        backward check is discrete (no gradient). The values do not depend on whether gradients are recorded.
     """
     check_points(pts, "pts")
     valid = default_valid(pts, valid, "valid")
@@ -739,6 +740,13 @@ def _track_lk_impl(
     """
     top = _level_cap(prev, next, opts.max_level, opts.win_size)
     B, N = pts.shape[:2]
+    if init_pts is not None:
+        # a non-finite guess (a NaN prediction) would index outside the image: its lane is not
+        # tracked and starts at its pts (status False, as OpenCV's 0). Elementwise, no host sync;
+        # a finite guess is kept exactly.
+        guessed = torch.isfinite(init_pts).all(-1)
+        init_pts = torch.where(guessed.unsqueeze(-1), init_pts, pts)
+        valid = valid & guessed
     per = _tuning.for_device(pts.device).lk_streams(B, N)
     if per is None:
         return _lk_impl(prev, next, pts, valid, init_pts, opts, top)

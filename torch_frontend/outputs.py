@@ -7,10 +7,21 @@ Convention:
     A track's length is the largest ``track_count`` its id reached (frames it was tracked in,
     published or not).
 
-    Every output is written atomically: a file goes to a hidden temporary name in the same
-    folder and is renamed over the final name (``os.replace``); ``tracks/`` is filled as a hidden
-    temporary folder and renamed at the end (an older ``tracks/`` is replaced). An interrupted or
-    failed run removes its temporaries and leaves no partial file under a final name.
+    The output set is written as a whole: a run fills a hidden temporary folder beside ``out``
+    (``.<out>.tf<pid>-<random>.tmp``, created when the recorder is, ``tracks/`` growing in it during
+    the run) and :meth:`RunRecorder.write` swaps it in for ``out`` in one step
+    (``_atomic.StagedFolder``), so ``out`` holds either the complete previous set or the complete
+    new one: a run without ``tracks/`` leaves none, an interrupted or failed run (SIGINT, SIGTERM
+    from the CLI, an error) removes its temporary folder and leaves ``out`` as it was. The set
+    includes ``written-by-torch-frontend.json``, the list of what the run wrote. Temporaries of
+    earlier runs that were killed outright (SIGKILL) are removed by the next run writing ``out``.
+
+    Foreign files: a run never deletes what the library did not write. It refuses, before
+    tracking, an ``out`` that holds anything else (``OutputFolderError``, a ``DataError`` naming
+    the folder and the files; the CLI prints it and exits 1): ``out`` must be absent, empty, a
+    folder of an earlier run (its marker lists everything in it), or a folder written before the
+    marker existed that holds only the names below and those versions' temporaries
+    (``LEGACY_OUTPUTS``). The temporary folder needs ``out``'s parent to be writable.
 
 Outputs in ``out``:
     * ``features.csv``: ``stream, timestamp, id, x, y, u, v, vx, vy, track_count``, one row per
@@ -25,22 +36,38 @@ Outputs in ``out``:
       ``config``, ``mode``, ``device``, ``inputs``.
     * ``features_per_frame.png``, ``track_length_hist.png``: matplotlib (Agg) plots.
     * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream.
+    * ``written-by-torch-frontend.json``: the marker (``_atomic.MARKER``).
 """
 
 from __future__ import annotations
 
 import io
 import json
-import shutil
-import tempfile
+import re
 from pathlib import Path
 from typing import Any, Dict, List, Sequence
 
 import numpy as np
 
-from ._atomic import atomic_path, replace_dir, write_bytes_atomic, write_text_atomic
+from ._atomic import (
+    OutputFolderError,
+    StagedFolder,
+    atomic_path,
+    legacy_temporaries,
+    replace_dir,
+    write_bytes_atomic,
+    write_text_atomic,
+)
 
 CSV_COLUMNS = ("stream", "timestamp", "id", "x", "y", "u", "v", "vx", "vy", "track_count")
+#: the files of a run (besides ``tracks/`` and the marker)
+OUTPUT_FILES = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png")
+#: what an ``out`` folder written before the marker existed may hold to be replaced (``_atomic``)
+LEGACY_OUTPUTS = (
+    "(" + "|".join(re.escape(n) for n in OUTPUT_FILES) + ")",
+    r"tracks(/stream\d+(/\d+\.png)?)?",
+    *legacy_temporaries(*OUTPUT_FILES, "tracks"),
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -51,11 +78,15 @@ class RunRecorder:
     """Collect per-step results of B streams and write the outputs of a run.
 
     Args:
-        out: output folder (created).
+        out: output folder (created; see the module docstring for what it may already hold).
         stream_names: one name per stream (for the summary and plots).
         write_tracks: draw and save track images (``tracks/``).
 
-    Use as a context manager: leaving it with an exception removes the temporary ``tracks/``.
+    Raises:
+        OutputFolderError: ``out`` holds files the library did not write (nothing is touched).
+        OSError: ``out`` cannot be created (a file there, no permission).
+
+    Use as a context manager: leaving it with an exception removes the temporary folder.
     """
 
     def __init__(self, out, stream_names: Sequence[str], write_tracks: bool = True):
@@ -70,9 +101,12 @@ class RunRecorder:
         self.per_frame: List[List[tuple]] = [[] for _ in range(self.B)]  # (step, t, present, published or -1)
         self.track_images = 0
         self._tmp_tracks: Path | None = None
+        # created first, so that a file at ``out`` or a read-only place fails before the run
         self.out.mkdir(parents=True, exist_ok=True)
+        self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS)
         if self.write_tracks:
-            self._tmp_tracks = Path(tempfile.mkdtemp(prefix=".tracks.", suffix=".tmp", dir=self.out))
+            self._tmp_tracks = self._stage.path / "tracks"
+            self._tmp_tracks.mkdir()
 
     # -- context manager: clean temporaries on failure
     def __enter__(self) -> RunRecorder:
@@ -84,9 +118,10 @@ class RunRecorder:
         return False
 
     def abort(self) -> None:
-        """Remove temporaries (nothing under a final name is touched)."""
-        if self._tmp_tracks is not None and self._tmp_tracks.exists():
-            shutil.rmtree(self._tmp_tracks, ignore_errors=True)
+        """Remove the temporary folder (``out`` is not touched)."""
+        if self._stage is not None:
+            self._stage.abort()
+        self._stage = None
         self._tmp_tracks = None
 
     # -- per step
@@ -198,8 +233,23 @@ class RunRecorder:
         return s
 
     def write(self, summary: Dict[str, Any], plots: bool = True) -> List[Path]:
-        """Write every output into ``out`` (atomically); returns the written paths."""
-        written = []
+        """Write every output and swap the set in for ``out`` (module docstring); returns the
+        paths under ``out``. Any failure leaves ``out`` as it was and removes the temporaries."""
+        if self._stage is None:
+            raise RuntimeError(f"{self.out}: the outputs of this RunRecorder were written or aborted already")
+        try:
+            names = self._write_set(self._stage.path, summary, plots)
+            self._stage.commit()
+        except BaseException:
+            self.abort()
+            raise
+        self._stage = None
+        self._tmp_tracks = None
+        return [self.out / n for n in names]
+
+    def _write_set(self, d: Path, summary: Dict[str, Any], plots: bool) -> List[str]:
+        """Write the outputs into the temporary folder ``d``; returns their names."""
+        names = []
         cols = self.columns()
         # features.csv
         buf = io.StringIO()
@@ -211,27 +261,21 @@ class RunRecorder:
                 f"{cols['x'][i]:.9g},{cols['y'][i]:.9g},{cols['u'][i]:.6f},{cols['v'][i]:.6f},"
                 f"{cols['vx'][i]:.9g},{cols['vy'][i]:.9g},{cols['track_count'][i]}\n"
             )
-        p = self.out / "features.csv"
-        write_text_atomic(p, buf.getvalue())
-        written.append(p)
+        (d / "features.csv").write_bytes(buf.getvalue().encode("utf-8"))
+        names.append("features.csv")
         # features.npz (np.savez appends '.npz' to names without it: write to a file object)
-        p = self.out / "features.npz"
-        with atomic_path(p) as tmp, open(tmp, "wb") as fh:
+        with open(d / "features.npz", "wb") as fh:
             np.savez_compressed(fh, **cols, stream_names=np.array(self.names))
-        written.append(p)
-        # summary.json
-        p = self.out / "summary.json"
-        write_text_atomic(p, json.dumps(summary, indent=2) + "\n")
-        written.append(p)
+        names.append("features.npz")
+        (d / "summary.json").write_bytes((json.dumps(summary, indent=2) + "\n").encode("utf-8"))
+        names.append("summary.json")
         if plots:
-            written += self._plots()
-        if self.write_tracks and self._tmp_tracks is not None:
-            replace_dir(self._tmp_tracks, self.out / "tracks")
-            self._tmp_tracks = None
-            written.append(self.out / "tracks")
-        return written
+            names += self._plots(d)
+        if self.write_tracks:
+            names.append("tracks")
+        return names
 
-    def _plots(self) -> List[Path]:
+    def _plots(self, d: Path) -> List[str]:
         # Figure + the Agg canvas directly, no pyplot: no global backend switch, no GUI, no state
         # leaking into a notebook's inline backend.
         from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -257,7 +301,7 @@ class RunRecorder:
         if self.B <= 8:
             ax.legend(fontsize=8, loc="best")
         fig.tight_layout()
-        out.append(self._save_fig(fig, "features_per_frame.png"))
+        out.append(self._save_fig(fig, d, "features_per_frame.png"))
 
         lengths = self.track_lengths()
         fig = Figure(figsize=(6, 4), dpi=100)
@@ -275,15 +319,15 @@ class RunRecorder:
         ax.set_title(f"Track lengths ({lengths.size} tracks)")
         ax.grid(True, alpha=0.3)
         fig.tight_layout()
-        out.append(self._save_fig(fig, "track_length_hist.png"))
+        out.append(self._save_fig(fig, d, "track_length_hist.png"))
         return out
 
-    def _save_fig(self, fig, name: str) -> Path:
-        p = self.out / name
+    def _save_fig(self, fig, d: Path, name: str) -> str:
         buf = io.BytesIO()
         fig.savefig(buf, format="png")
-        write_bytes_atomic(p, buf.getvalue())
-        return p
+        (d / name).write_bytes(buf.getvalue())
+        return name
 
 
-__all__ = ["RunRecorder", "CSV_COLUMNS", "atomic_path", "write_text_atomic", "write_bytes_atomic", "replace_dir"]
+__all__ = ["RunRecorder", "CSV_COLUMNS", "OUTPUT_FILES", "LEGACY_OUTPUTS", "OutputFolderError", "atomic_path",
+           "write_text_atomic", "write_bytes_atomic", "replace_dir"]

@@ -31,6 +31,7 @@ seed. The index tables are generated on the host lazily (only as many samples as
 vectorised (numpy: jump-ahead lanes for the multiply-with-carry stream, all candidate subset starts
 at once for the redraw rule) and cached process-wide per (seed, n) in a small LRU, so a tracker whose
 point count changes every frame pays ~0.1-1 ms once per new n instead of rebuilding 1000 samples.
+The cache is thread-safe (calls from several threads give the single-threaded results).
 
 Performance notes (CPU, see ``benchmarks/bench_ransac.py``): small problems are bound by the number
 of torch ops per round, so the first round is small (32 samples: with few outliers OpenCV stops
@@ -43,6 +44,7 @@ from __future__ import annotations
 
 import collections
 import math
+import threading
 from typing import NamedTuple, Sequence, Tuple, Union
 
 import numpy as np
@@ -116,6 +118,12 @@ _RAW_CACHE: collections.OrderedDict = collections.OrderedDict()  # state -> _Raw
 _RAW_CACHE_STATES = 16  # LRU bound: a fresh generator seed per call must not grow memory forever
 _SUBSET_CACHE: collections.OrderedDict = collections.OrderedDict()  # (state, n) -> _SubsetStream
 _SUBSET_CACHE_SIZE = 512  # <= 512 x (1000, 7) int32 = 14 MB; the tracker needs one entry per n
+# Thread safety: every growth of a cached stream and every LRU update holds this lock (re-entrant:
+# a subset stream grows its raw stream while holding it). Reading a table that is long enough takes
+# no lock: a stream publishes its grown table with one attribute assignment once it is complete,
+# so a reader sees the old table or the new one, never a half-built one, and both start with the
+# same rows (tables only grow). Growth is geometric, so the lock is taken a few times per stream.
+_STREAM_LOCK = threading.RLock()
 
 
 _MWC_M = _MWC_A * 2**32 - 1
@@ -129,7 +137,10 @@ class _RawStream:
     The recurrence is sequential, but it is a multiply-with-carry generator: with ``m = a 2^32 - 1``
     every state below m satisfies ``next(s) = s 2^-32 mod m`` (``2^32 next(s) = m lo32(s) + s``). So
     the stream is cut into lanes whose start states are jumped to with one modular power each
-    (Python ints) and the lanes are stepped together in numpy uint64 (no overflow: s < m < 2^64)."""
+    (Python ints) and the lanes are stepped together in numpy uint64 (no overflow: s < m < 2^64).
+
+    Thread-safe (see ``_STREAM_LOCK``): ``vals`` is replaced, never modified in place, and ``s``
+    (the state after ``vals``) is only read and written under the lock."""
 
     __slots__ = ("vals", "s")
 
@@ -138,8 +149,16 @@ class _RawStream:
         self.s = state
 
     def upto(self, count: int) -> np.ndarray:
+        """At least the first ``count`` outputs (a longer array when it was grown further)."""
+        vals = self.vals
+        if vals.size >= count:
+            return vals
+        with _STREAM_LOCK:
+            return self._grow(count)
+
+    def _grow(self, count: int) -> np.ndarray:
         have = self.vals.size
-        if have >= count:
+        if have >= count:  # another thread grew it while this one waited for the lock
             return self.vals
         count = max(count, 2 * have, 256)
         s, head = self.s, []
@@ -164,20 +183,22 @@ class _RawStream:
                 out[:, t] = S
             parts.append((out & lo).astype(np.int64).reshape(-1))
             # s is now the state after lanes * T draws (>= todo)
+        vals = np.concatenate([self.vals, *parts])
         self.s = s
-        self.vals = np.concatenate([self.vals, *parts])
-        return self.vals
+        self.vals = vals  # publish: complete before it is visible
+        return vals
 
 
 def _raw_stream(state: int) -> _RawStream:
-    st = _RAW_CACHE.get(state)
-    if st is None:
-        st = _RAW_CACHE[state] = _RawStream(state)
-        while len(_RAW_CACHE) > _RAW_CACHE_STATES:
-            _RAW_CACHE.popitem(last=False)
-    else:
-        _RAW_CACHE.move_to_end(state)
-    return st
+    with _STREAM_LOCK:
+        st = _RAW_CACHE.get(state)
+        if st is None:
+            st = _RAW_CACHE[state] = _RawStream(state)
+            while len(_RAW_CACHE) > _RAW_CACHE_STATES:
+                _RAW_CACHE.popitem(last=False)
+        else:
+            _RAW_CACHE.move_to_end(state)
+        return st
 
 
 class _SubsetStream:
@@ -189,15 +210,17 @@ class _SubsetStream:
     Vectorised: the subset that starts at stream position p (and the position after it) depends only
     on p, not on what came before, so it is computed for every p of a block at once (draw j is
     redrawn iff the previous occurrence of its value lies at or after p); then the chain
-    0 -> end(0) -> end(end(0)) ... picks OpenCV's subsets (a cheap host loop over samples)."""
+    0 -> end(0) -> end(end(0)) ... picks OpenCV's subsets (a cheap host loop over samples).
 
-    __slots__ = ("raw", "n", "table", "count", "pos")
+    Thread-safe (see ``_STREAM_LOCK``): ``table`` is replaced, never modified in place, and ``pos``
+    (the stream position after ``table``) is only read and written under the lock."""
+
+    __slots__ = ("raw", "n", "table", "pos")
 
     def __init__(self, state: int, n: int):
         self.raw = _raw_stream(state)
         self.n = n
         self.table = np.zeros((0, _MODEL_POINTS), dtype=np.int32)
-        self.count = 0
         self.pos = 0  # stream position of the next subset
 
     def _slow(self, p: int):
@@ -211,11 +234,20 @@ class _SubsetStream:
         return cur, p
 
     def upto(self, count: int) -> np.ndarray:
-        if self.count >= count:
+        """At least the first ``count`` subsets, ``(>= count, 7)`` int32."""
+        table = self.table
+        if table.shape[0] >= count:
+            return table
+        with _STREAM_LOCK:
+            return self._grow(count)
+
+    def _grow(self, count: int) -> np.ndarray:
+        have = self.table.shape[0]
+        if have >= count:  # another thread grew it while this one waited for the lock
             return self.table
-        need = count - self.count
-        if self.count == 0 or need < self.count:  # grow geometrically: few extensions per stream
-            need = max(need, self.count, 16)
+        need = count - have
+        if have == 0 or need < have:  # grow geometrically: few extensions per stream
+            need = max(need, have, 16)
         n = self.n
         # expected draws per subset: sum_i n / (n - i), i < 7; 8 (+ margin) for n >= 50
         per = sum(n / (n - i) for i in range(_MODEL_POINTS)) if n > _MODEL_POINTS else 64.0
@@ -257,22 +289,31 @@ class _SubsetStream:
             for j, cur in slow:
                 out[j] = cur
             p0 += p
+        table = np.concatenate([self.table, out])
         self.pos = p0
-        self.table = np.concatenate([self.table, out])
-        self.count += need
-        return self.table
+        self.table = table  # publish: complete before it is visible
+        return table
 
 
 def _subset_stream(state: int, n: int) -> _SubsetStream:
     key = (state, n)
-    st = _SUBSET_CACHE.get(key)
-    if st is None:
-        st = _SUBSET_CACHE[key] = _SubsetStream(state, n)
-        while len(_SUBSET_CACHE) > _SUBSET_CACHE_SIZE:
-            _SUBSET_CACHE.popitem(last=False)
-    else:
-        _SUBSET_CACHE.move_to_end(key)
-    return st
+    with _STREAM_LOCK:
+        st = _SUBSET_CACHE.get(key)
+        if st is None:
+            st = _SUBSET_CACHE[key] = _SubsetStream(state, n)
+            while len(_SUBSET_CACHE) > _SUBSET_CACHE_SIZE:
+                _SUBSET_CACHE.popitem(last=False)
+        else:
+            _SUBSET_CACHE.move_to_end(key)
+        return st
+
+
+def _clear_sample_caches() -> None:
+    """Empty the process-wide sample-table caches (tests, benchmarks; streams already handed out
+    stay valid)."""
+    with _STREAM_LOCK:
+        _SUBSET_CACHE.clear()
+        _RAW_CACHE.clear()
 
 
 def _opencv_samples(state: int, n: int, num: int) -> torch.Tensor:
@@ -315,6 +356,9 @@ def _solve_cubic(c: torch.Tensor):
     Not ``kornia.geometry.solvers.solve_cubic``: measured (kornia 0.9.0) on the 22 380 cubics of
     ``tests/test_ransac.py`` its roots equal these in only 12 % of rows (three-root rows in another
     order, max |diff| 2e-13), and it zero-pads instead of flagging which slots are real roots.
+
+    Root order: not OpenCV's (three real roots come as largest, middle, smallest); the 7-point
+    solver uses :func:`_solve_cubic_opencv`, the Lambda Twist P3P (``loop/pnp.py``) this one.
     """
     a, b, cc, d = c.unbind(-1)
     scale = c.abs().amax(-1).clamp_min(1e-300)
@@ -377,7 +421,110 @@ def _solve_cubic(c: torch.Tensor):
     return torch.where(ok, roots, torch.zeros_like(roots)), ok
 
 
+def _solve_cubic_opencv(c: torch.Tensor):
+    """Real roots of ``c[...,0] x^3 + c[...,1] x^2 + c[...,2] x + c[...,3]`` as ``cv::solveCubic``
+    finds them (its form in OpenCV 4.14: coefficients scaled by their largest magnitude, expanded
+    discriminant): the same number, in the same order, by the same formulas (float64, batched, no
+    gradients).
+
+    Returns ``roots (..., 3)`` and ``ok (..., 3)`` bool, the real roots first (zero where not ok).
+
+    Convention (``cv::solveCubic``; its branch decisions are taken on OpenCV's own arithmetic, the
+    very operations in the same order, so for the same coefficients the number of roots is cv2's,
+    also at a double root where it depends on rounding). With ``m = max |c_k|`` and ``eps`` the
+    float64 epsilon:
+        * ``|c0| >= eps m``: ``a_k = (c_k / m) / (c0 / m)``, ``Q = (a1^2 - 3 a2) / 9``,
+          ``R = (2 a1^3 - 9 a1 a2 + 27 a3) / 54`` and ``d = Q^3 - R^2`` (expanded, as OpenCV).
+          ``d > 0``: three roots ``-2 sqrt(Q) cos((theta + 2 pi k) / 3) - a1 / 3``, ``theta =
+          acos(R / sqrt(Q^3))``, k = 0, 1, 2, i.e. the smallest, the largest, then the middle one.
+          ``d == 0``: the simple root, then the double one (one root if they coincide).
+          ``d < 0``: one root.
+        * ``|c0| < eps m``: the quadratic's roots, the one from the larger ``|q|`` of ``q = (-c2 +-
+          sqrt(disc)) / 2`` first (one root if ``disc == 0``, none if ``disc < 0``); ``|c1| < eps m``
+          too: the linear root; ``|c2| < eps m`` too (or ``m < eps``): no root.
+    The order of the 7-point models decides which of two models with equal inlier counts RANSAC
+    keeps (OpenCV: the first). No Newton polish (OpenCV's models come from these very formulas);
+    where OpenCV's formulas give NaN (an ``acos`` argument past 1 by rounding) the root is not ok.
+    Unlike :func:`_solve_cubic`, lanes of branches not taken may hold NaN (no gradients here).
+    """
+    mc = c.abs().amax(-1)
+    c0, c1, c2, c3 = c.unbind(-1)
+    tiny = _DBL_EPSILON * mc
+    cubic = (c0.abs() >= tiny) & (mc >= _DBL_EPSILON)
+    # OpenCV's expressions, operation by operation (C++ evaluates left to right; its x86 builds do
+    # not contract into fused multiply-adds), so the sign of d is OpenCV's bit for bit
+    cs = c * (1.0 / mc)[..., None]
+    a1, a2, a3 = (cs[..., 1:] * (1.0 / cs[..., 0])[..., None]).unbind(-1)
+    a11 = a1 * a1
+    Q = (a11 - 3.0 * a2) * (1.0 / 9.0)
+    R = (a1 * (2.0 * a1 * a1 - 9.0 * a2) + 27.0 * a3) * (1.0 / 54.0)
+    two_a2 = 2.0 * a2
+    d = (a11 * (a2 * a2 - 4.0 * a1 * a3) + two_a2 * (9.0 * a1 * a3 - two_a2 * a2) - 27.0 * a3 * a3) * (1.0 / 108.0)
+    three = cubic & (d > 0)
+    t2 = a1 * (1.0 / 3.0)
+    # d > 0: trigonometric form
+    theta = torch.acos(R / torch.sqrt(Q * Q * Q))
+    x3 = (-2.0 * torch.sqrt(Q))[..., None] * torch.cos((theta * (1.0 / 3.0))[..., None]
+                                                        + _CUBIC_PHASES.to(c.device, c.dtype)) - t2[..., None]
+    # d < 0: one root
+    e = (torch.sqrt(-d) + R.abs()).pow(1.0 / 3.0)
+    e = torch.where(R > 0, -e, e)
+    zero = torch.zeros_like(mc)
+    roots = torch.where(three[..., None], x3, torch.stack([(e + Q / e) - t2, zero, zero], -1))
+    ok = torch.stack([cubic, three, three], -1)
+    # rare branches (a double root, a negligible c0): on the CPU skipped when no lane needs them
+    # (a free check there; elsewhere it would be a host sync)
+    dbl = cubic & (d == 0)
+    if not _tuning.for_device(c.device).host_checks_free or bool((dbl | ~cubic).any()):
+        no = torch.zeros_like(cubic)
+        cr = _cbrt(R)
+        a13 = a1 / 3.0
+        y0, y1 = -2.0 * cr - a13, cr - a13
+        roots = torch.where(dbl[..., None], torch.stack([y0, y1, zero], -1), roots)
+        ok = torch.where(dbl[..., None], torch.stack([~no, y0 != y1, no], -1), ok)
+        # negligible c0: quadratic (on the unscaled coefficients, as OpenCV) or linear
+        quad = ~cubic & (c1.abs() >= tiny) & (mc >= _DBL_EPSILON)
+        lin = ~cubic & ~quad & (c2.abs() >= tiny) & (mc >= _DBL_EPSILON)
+        qd = c2 * c2 - 4.0 * c1 * c3
+        sqd = torch.sqrt(qd)
+        q1 = (-c2 + sqd) * 0.5
+        q2 = (c2 + sqd) * -0.5
+        q = torch.where(q1.abs() > q2.abs(), q1, q2)
+        qroots = torch.where(quad[..., None], torch.stack([q / c1, c3 / q, zero], -1),
+                             torch.stack([-c3 / c2, zero, zero], -1))
+        qok = torch.where(quad[..., None], torch.stack([qd >= 0, qd > 0, no], -1), torch.stack([lin, no, no], -1))
+        roots = torch.where(cubic[..., None], roots, qroots)
+        ok = torch.where(cubic[..., None], ok, qok)
+    ok = ok & torch.isfinite(roots)
+    return torch.where(ok, roots, torch.zeros_like(roots)), ok
+
+
+def _cbrt(x: torch.Tensor) -> torch.Tensor:
+    """Real cube root (``std::cbrt``; torch has none), odd in ``x``."""
+    return torch.sign(x) * x.abs().pow(1.0 / 3.0)
+
+
 _CUBIC_PHASES = 2.0 * math.pi * torch.arange(3, dtype=torch.float64) / 3.0
+
+
+def _opencv_null_seeds() -> torch.Tensor:
+    """The two vectors OpenCV's ``SVDecomp(..., FULL_UV)`` of the 7x9 system completes ``V`` with:
+    its Jacobi SVD draws, for each missing row, 9 entries ``+-1/9`` from a fresh ``cv::RNG(0x12345678)``
+    (sign from bit 8 of ``next()``) and orthogonalises them against the rows before. So OpenCV's
+    null-space basis of ``run7Point`` is ``f1 = P r7 / |P r7|``, ``f2`` = the unit vector of ``P r8``
+    orthogonal to ``f1`` (P the projection onto the null space). Returned as ``(9, 2)`` columns
+    ``r7, r8`` of +-1 (the scale does not matter)."""
+    s, cols = 0x12345678, []
+    for _ in range(2):
+        col = []
+        for _ in range(9):
+            s = (s & _U32) * _MWC_A + (s >> 32)
+            col.append(1.0 if s & 256 else -1.0)
+        cols.append(col)
+    return torch.tensor(cols, dtype=torch.float64).T.contiguous()
+
+
+_OPENCV_NULL_SEEDS = _opencv_null_seeds()
 _PAIRS_CACHE: dict = {}
 
 
@@ -417,6 +564,11 @@ def _run_7point(m: torch.Tensor):
     Q, which is much faster than a batched SVD and equally stable for a rank-7 system), the real
     roots of det(a*F1 + (1 - a)*F2) = 0, then de-normalisation. Both images are handled in one
     tensor (half the small ops).
+
+    Model order = OpenCV's (which of two models with the same inlier count RANSAC keeps depends on
+    it): F1, F2 are OpenCV's own basis of the null space (:func:`_opencv_null_seeds`; any other
+    basis gives the same models in another order), so the cubic is OpenCV's up to rounding, and its
+    roots come in ``cv::solveCubic``'s order (:func:`_solve_cubic_opencv`).
     """
     degenerate = _collinear_last(m).any(-1)
     c = m.mean(1, keepdim=True)  # (M, 1, 2, 2)
@@ -426,11 +578,20 @@ def _run_7point(m: torch.Tensor):
     s = math.sqrt(2.0) / torch.where(good[:, None], s, torch.ones_like(s))
     nm = dm * s[:, None, :, None]
     A = _epipolar_rows(nm[..., 0, 0], nm[..., 0, 1], nm[..., 1, 0], nm[..., 1, 1])  # (M, 7, 9)
-    Qm = torch.linalg.qr(A.transpose(-1, -2), mode="complete").Q  # (M, 9, 9)
-    f1 = Qm[..., :, 7]
-    f2 = Qm[..., :, 8]
-    Fa = (f1 - f2).reshape(-1, 3, 3)  # F(alpha) = alpha * Fa + Fb
-    Fb = f2.reshape(-1, 3, 3)
+    Nb = torch.linalg.qr(A.transpose(-1, -2), mode="complete").Q[..., 7:]  # (M, 9, 2) null space
+    # OpenCV's basis of the null space (see _opencv_null_seeds), so that the cubic in alpha is
+    # OpenCV's and its roots come in OpenCV's order: in Nb coordinates f1 ~ u = P r7 and f2 ~ v,
+    # orthogonal to u on the side of P r8
+    cf = Nb.transpose(-1, -2) @ _OPENCV_NULL_SEEDS.to(m.device)  # (M, 2, 2): columns P r7, P r8
+    u0, u1 = cf[:, 0, 0], cf[:, 1, 0]  # u: P r7 (its length does not matter: the roots are
+    side = torch.where(u0 * cf[:, 1, 1] - u1 * cf[:, 0, 1] < 0, -1.0, 1.0)  # those of any multiple)
+    su0, su1 = side * u0, side * u1  # v = side * (-u1, u0): orthogonal to u, as long, towards P r8
+    # f1 - f2 = (u0 + su1) n1 + (u1 - su0) n2, f2 = -su1 n1 + su0 n2 (n1, n2 the columns of Nb),
+    # as elementwise products (a batched 9x2 @ 2x2 matmul costs more)
+    coef = torch.stack([u0 + su1, -su1, u1 - su0, su0], -1).view(-1, 1, 2, 2)
+    Fab = (Nb[..., None] * coef).sum(-2)  # (M, 9, 2): OpenCV's f1 - f2 and f2 (up to one scale)
+    Fa = Fab[..., 0].reshape(-1, 3, 3)  # F(alpha) = alpha * Fa + Fb = alpha f1 + (1 - alpha) f2
+    Fb = Fab[..., 1].reshape(-1, 3, 3)
     # det(alpha*Fa + Fb) = alpha^3 det Fa + alpha^2 <cof Fa, Fb> + alpha <Fa, cof Fb> + det Fb
     ca, cb = _cofactor(Fa), _cofactor(Fb)  # det M = <M, cof M> / 3 = <row 0, cof row 0>
     coeffs = torch.stack(
@@ -442,7 +603,7 @@ def _run_7point(m: torch.Tensor):
         ],
         -1,
     )
-    roots, rok = _solve_cubic(coeffs)  # (M, 3)
+    roots, rok = _solve_cubic_opencv(coeffs)  # (M, 3), OpenCV's order
     Fn = roots[..., None, None] * Fa[:, None] + Fb[:, None]  # (M, 3, 3, 3)
     # de-normalise: F = T2^T Fn T1, T = [[s, 0, -s cx], [0, s, -s cy], [0, 0, 1]]
     zero = torch.zeros_like(s)
@@ -750,8 +911,9 @@ def find_fundamental(
           (1e-6 px)^2 count as equal (first in draw order wins). For n <= 13 OpenCV's median rank
           n // 2 <= 6 lies among the sample's own 7 exact-fit points, so its choice between models
           is floating-point noise and cannot be reproduced; from n = 14 on the masks are OpenCV's.
-        * n >= 15: RANSAC with the 7-point solver (up to three models per sample, each scored);
-          a model replaces the best one only with strictly more inliers (and at least 7); the
+        * n >= 15: RANSAC with the 7-point solver (up to three models per sample, each scored, in
+          OpenCV's order); a model replaces the best one only with strictly more inliers (and at
+          least 7: of two models with the same count the first drawn is kept, as in OpenCV); the
           iteration bound follows OpenCV's ``RANSACUpdateNumIters(confidence, outlier ratio, 7,
           bound)``, capped by ``max_iters``. Rounds run while some problem is below its bound;
           within a round the bound is replayed after every sample, so each problem stops at exactly

@@ -24,7 +24,7 @@ the points broadcast against it; a stack of different calibrations is a stack of
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar, Dict, Mapping, Tuple
+from typing import Any, ClassVar, Dict, List, Mapping, Tuple
 
 import torch
 from torch import nn
@@ -49,6 +49,9 @@ class CameraModel(nn.Module):
     model_type: ClassVar[str] = ""
     param_names: ClassVar[Tuple[str, ...]] = ()
     vector_params: ClassVar[Dict[str, int]] = {}
+    #: parameters that must be > 0 (the focal lengths: ``lift`` divides by them) and >= 0
+    positive_params: ClassVar[Tuple[str, ...]] = ()
+    nonnegative_params: ClassVar[Tuple[str, ...]] = ()
 
     def __init__(
         self,
@@ -101,6 +104,43 @@ class CameraModel(nn.Module):
                 f"missing {missing}, unexpected {extra}"
             )
         return cls(**params, **kwargs)
+
+    @classmethod
+    def param_problems(cls, params: Mapping[str, Any]) -> List[Tuple[str, str]]:
+        """What makes the calibration values ``params`` (``{name: number}``, lists for vectors, the
+        ``params_dict`` layout) unusable for this model, as ``[(name, problem)]``; empty when none.
+
+        Every value must be finite, ``positive_params`` (focal lengths) > 0 and
+        ``nonnegative_params`` >= 0; a model adds its own rules in ``_model_problems``. An element of
+        a vector parameter is named ``name[i]``. The readers of calibration files
+        (``camera_from_config``, ``config.camera_from_sensor_yaml``) raise a ``ConfigError`` naming
+        the file's key for the first problem: upstream would accept the values and return NaN or
+        garbage rays (``fx: 0`` divides by zero in every ``lift``).
+        """
+        values: Dict[str, List[float]] = {
+            n: torch.as_tensor(params[n], dtype=torch.float64).detach().cpu().reshape(-1).tolist()
+            for n in cls.param_names
+        }
+        problems: List[Tuple[str, str]] = []
+        for name, vals in values.items():
+            for i, v in enumerate(vals):
+                if not math.isfinite(v):
+                    problems.append((f"{name}[{i}]" if name in cls.vector_params else name,
+                                     f"must be a finite number, got {v!r}"))
+        if problems:
+            return problems
+        for name in cls.positive_params:
+            if not values[name][0] > 0:
+                problems.append((name, f"must be > 0 (a focal length in pixels), got {values[name][0]!r}"))
+        for name in cls.nonnegative_params:
+            if not values[name][0] >= 0:
+                problems.append((name, f"must be >= 0, got {values[name][0]!r}"))
+        return problems + cls._model_problems(values)
+
+    @classmethod
+    def _model_problems(cls, values: Mapping[str, List[float]]) -> List[Tuple[str, str]]:
+        """Model-specific rules of :meth:`param_problems` on finite values (``{name: [floats]}``)."""
+        return []
 
     def params_dict(self) -> Dict[str, Any]:
         """Parameters as Python floats (lists for Scaramuzza's polynomials), in ``param_names`` order."""

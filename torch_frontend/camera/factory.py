@@ -4,7 +4,9 @@ Mirrors camodocal's ``CameraFactory::generateCameraFromYamlFile`` (spec §4.0, k
 deliberate differences, both turning silent upstream failures into errors:
 
 * upstream reads an absent key as 0 (and then divides by it); here a missing or non-numeric key
-  raises ``ConfigError`` naming it, e.g. ``projection_parameters.fx``;
+  raises ``ConfigError`` naming it, e.g. ``projection_parameters.fx``, and so does a value the model
+  cannot work with (``CameraModel.param_problems``: not finite, a focal length <= 0, Scaramuzza's
+  singular affine part), or an image size <= 0;
 * upstream's per-model readers compare ``model_type`` case-sensitively and, on a mismatch such as
   ``pinhole``, silently leave every parameter 0; here any letter case selects the model and reads it.
 
@@ -13,6 +15,7 @@ As upstream, an absent ``model_type`` means ``MEI``.
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 from typing import Any, Dict, Mapping, Union
@@ -76,9 +79,28 @@ def _int(node: Mapping[str, Any], key: str, path) -> int:
     if key not in node:
         raise ConfigError("missing", path, key)
     v = node[key]
-    if isinstance(v, bool) or not isinstance(v, numbers.Real) or float(v) != int(v):
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or float(v) != int(v):
         raise ConfigError(f"expected an integer, got {type(v).__name__} {v!r}", path, key)
     return int(v)
+
+
+def _yaml_keys(cls) -> Dict[str, str]:
+    """Parameter name (``param_problems``' spelling, ``poly[3]`` for a vector element) -> YAML key."""
+    keys = {pname: f"{block_key}.{yaml_key}" for block_key, yaml_key, pname in _LAYOUT[cls]}
+    if cls is ScaramuzzaCamera:
+        for block_key, pname, size in (("poly_parameters", "poly", POLY_SIZE),
+                                       ("inv_poly_parameters", "inv_poly", INV_POLY_SIZE)):
+            keys.update({f"{pname}[{i}]": f"{block_key}.p{i}" for i in range(size)})
+    return keys
+
+
+def _check_params(cls, params: Mapping[str, Any], path, keys: Mapping[str, str]) -> None:
+    """``ConfigError`` naming the file and key (``keys``: parameter name -> key) of the first of
+    ``cls.param_problems(params)``."""
+    problems = cls.param_problems(params)
+    if problems:
+        name, problem = problems[0]
+        raise ConfigError(f"{problem} ({cls.model_type} camera)", path, keys.get(name, name))
 
 
 def camera_from_config(
@@ -104,7 +126,9 @@ def camera_from_config(
 
     Raises:
         ConfigError: naming the file and the key: a missing key (``projection_parameters.fx``), a
-            value of the wrong type, or an unknown ``model_type`` (the message lists the known ones).
+            value of the wrong type, a value the model cannot work with (not finite, a focal length
+            <= 0: ``CameraModel.param_problems``), an image size <= 0, or an unknown ``model_type``
+            (the message lists the known ones).
     """
     if isinstance(node, (str, os.PathLike)):
         path = node if path is None else path
@@ -131,6 +155,9 @@ def camera_from_config(
 
     width = _int(node, "image_width", path)
     height = _int(node, "image_height", path)
+    for key, v in (("image_width", width), ("image_height", height)):
+        if v <= 0:
+            raise ConfigError(f"must be a positive number of pixels, got {v}", path, key)
     name = node.get("camera_name", "")
     if not isinstance(name, str):
         name = str(name)
@@ -143,4 +170,5 @@ def camera_from_config(
         for block_key, pname, size in (("poly_parameters", "poly", POLY_SIZE), ("inv_poly_parameters", "inv_poly", INV_POLY_SIZE)):
             block = _block(node, block_key, path)
             params[pname] = [_number(block, f"p{i}", f"{block_key}.p{i}", path) for i in range(size)]
+    _check_params(cls, params, path, _yaml_keys(cls))
     return cls(**params, width=width, height=height, camera_name=name, dtype=dtype, device=device)

@@ -179,6 +179,7 @@ class KannalaBrandtCamera(CameraModel):
 
     model_type = "KANNALA_BRANDT"
     param_names = ("k2", "k3", "k4", "k5", "mu", "mv", "u0", "v0")
+    positive_params = ("mu", "mv")
 
     def __init__(
         self,

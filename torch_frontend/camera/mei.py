@@ -27,6 +27,10 @@ class MeiCamera(CameraModel):
 
     model_type = "MEI"
     param_names = ("xi", "k1", "k2", "p1", "p2", "gamma1", "gamma2", "u0", "v0")
+    positive_params = ("gamma1", "gamma2")
+    # the unified model projects from a point xi behind the sphere's centre (xi = 0: a pinhole);
+    # xi < 0 puts it in front, where xi + sqrt(...) in lift can vanish
+    nonnegative_params = ("xi",)
 
     def __init__(
         self,

@@ -25,6 +25,7 @@ class PinholeCamera(CameraModel):
 
     model_type = "PINHOLE"
     param_names = ("k1", "k2", "p1", "p2", "fx", "fy", "cx", "cy")
+    positive_params = ("fx", "fy")
 
     def __init__(
         self,
@@ -84,6 +85,7 @@ class PinholeFullCamera(CameraModel):
 
     model_type = "PINHOLE_FULL"
     param_names = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "fx", "fy", "cx", "cy")
+    positive_params = ("fx", "fy")
 
     def __init__(
         self,

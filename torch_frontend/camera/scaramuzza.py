@@ -41,6 +41,21 @@ class ScaramuzzaCamera(CameraModel):
     param_names = ("poly", "inv_poly", "ac", "ad", "ae", "cx", "cy")
     vector_params = {"poly": POLY_SIZE, "inv_poly": INV_POLY_SIZE}
 
+    @classmethod
+    def _model_problems(cls, values):
+        """``lift`` divides by the affine part's determinant ``ac - ad ae`` (> 0: invertible and not
+        mirrored; OCamCalib's ``c ~ 1``, ``d, e ~ 0``), and ``poly[0]`` (OCamCalib's ``a0``, minus
+        the focal length in pixels) must be < 0, else the centre pixel's ray does not look along +z."""
+        (ac,), (ad,), (ae,) = values["ac"], values["ad"], values["ae"]
+        problems = []
+        if not ac - ad * ae > 0:
+            problems.append(("ac", f"the affine part [[ac, ad], [ae, 1]] needs a determinant ac - ad*ae > 0, "
+                                   f"got {ac!r} - {ad!r}*{ae!r} = {ac - ad * ae!r}"))
+        if not values["poly"][0] < 0:
+            problems.append(("poly[0]", f"must be < 0 (OCamCalib's a0: minus the focal length in pixels), "
+                                        f"got {values['poly'][0]!r}"))
+        return problems
+
     def __init__(
         self,
         poly: Any,

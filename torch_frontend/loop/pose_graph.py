@@ -29,8 +29,6 @@ Differences from VINS, on purpose:
 from __future__ import annotations
 
 import math
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
@@ -526,15 +524,27 @@ class PoseGraph:
     # ------------------------------------------------------------------------------ persistence
     def save(self, directory: PathLike) -> Path:
         """Save in VINS's format (§7.11): ``pose_graph.txt``, ``<i>_keypoints.txt``,
-        ``<i>_briefdes.dat`` (and ``<i>_image.png`` for kept images). Written into a temporary
-        folder that replaces ``directory`` only when complete."""
-        from .._atomic import replace_dir
+        ``<i>_briefdes.dat`` (and ``<i>_image.png`` for kept images), plus the marker
+        ``written-by-torch-frontend.json`` (the list of these files; VINS and :meth:`load` ignore it).
+
+        Written into a temporary folder beside ``directory`` that replaces it as a whole, in one
+        step, only when complete (``_atomic.StagedFolder``). Nothing the library did not write is
+        ever deleted: ``directory`` is replaced only when it is absent, empty, an earlier save (its
+        marker lists everything in it) or a folder saved before the marker existed (by this
+        library or VINS) that holds only pose-graph files (``POSE_GRAPH_FILES``); anything else
+        there, or a file at ``directory``, raises ``OutputFolderError`` (a ``DataError``) naming it
+        and nothing is touched.
+
+        Raises:
+            DataError: the parent folder is missing; ``OutputFolderError`` as above.
+        """
+        from .._atomic import StagedFolder
 
         final = Path(directory)
         if not final.parent.exists():
             raise DataError(f"save: parent folder {final.parent} does not exist")
-        tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
-        try:
+        with StagedFolder(final, "pose_graph", POSE_GRAPH_FILES) as stage:
+            tmp = stage.path
             lines = []
             for k in self.keyframes:
                 vq = R_to_quat(k.vio_R).tolist()
@@ -551,18 +561,17 @@ class PoseGraph:
                 if k.image is not None:
                     import cv2
 
-                    cv2.imwrite(str(tmp / f"{k.index}_image.png"), k.image.cpu().numpy())
+                    if not cv2.imwrite(str(tmp / f"{k.index}_image.png"), k.image.cpu().numpy()):
+                        raise OSError(f"save: cannot write {final / f'{k.index}_image.png'}")
             (tmp / "pose_graph.txt").write_text("".join(lines))
-            replace_dir(tmp, final)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return final
 
     def load(self, directory: PathLike) -> int:
         """Load a graph saved by :meth:`save` or by VINS (§7.11): keyframes become sequence 0,
         fixed in optimisation, re-indexed after the current ones and added to the place database
-        (no detection). Returns the number of keyframes loaded. Nothing changes on an error."""
+        (no detection). Returns the number of keyframes loaded. Nothing changes on an error.
+        The marker file of :meth:`save` is not needed: folders saved before it, or by VINS, load
+        the same."""
         directory = Path(directory)
         rows = _read_pose_graph(directory)
         new: List[KeyFrame] = []
@@ -595,6 +604,11 @@ class PoseGraph:
 
 
 # ---------------------------------------------------------------------------------- file formats
+#: the files of a saved pose graph (``save``; VINS writes the same names): what a folder saved
+#: before the marker existed may hold to be replaced (regular expressions, ``_atomic``)
+POSE_GRAPH_FILES = (r"pose_graph\.txt", r"\d+_keypoints\.txt", r"\d+_briefdes\.dat", r"\d+_image\.png")
+
+
 def _brief_to_text(desc: torch.Tensor) -> str:
     """boost ``dynamic_bitset`` text, most-significant bit first (char 0 = bit 255)."""
     if desc.shape[0] == 0:

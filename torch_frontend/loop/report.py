@@ -26,8 +26,16 @@ Convention:
       ``place_recognition_scores.png``: per keyframe, the best place-recognition score and the
       candidates (accepted / rejected).
 
-    Every file goes to a hidden temporary name in its folder and is renamed over the final name
-    (``torch_frontend.outputs``); the pose graph folder is filled as a temporary folder and renamed.
+    * ``written-by-torch-frontend.json``: the marker, the list of what the run wrote (and one in
+      each ``pose_graph/``, which ``PoseGraph.save`` writes).
+
+    The output set is written as a whole, as ``torch_frontend.outputs`` describes for ``track``:
+    into a hidden temporary folder beside ``out``, swapped in for ``out`` in one step when
+    complete (``_atomic.StagedFolder``), so ``out`` holds either the complete previous set or the
+    complete new one; an interrupted or failed write removes its temporary folder. An ``out`` that
+    holds files the library did not write is refused (``OutputFolderError``, checked by
+    ``check_out_folder`` before the run and again before the swap); a folder written before the
+    marker existed is replaced when it holds only the names above (``LEGACY_OUTPUTS``).
 """
 
 from __future__ import annotations
@@ -35,18 +43,23 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import re
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .._atomic import write_bytes_atomic, write_text_atomic
+from .._atomic import StagedFolder, check_replaceable, legacy_temporaries
+from .pose_graph import POSE_GRAPH_FILES
 
 __all__ = [
+    "LEGACY_OUTPUTS",
     "LOOP_COLUMNS",
     "OUTPUT_FILES",
     "STREAM_FILES",
+    "check_out_folder",
     "graph_dir",
     "loops_csv_text",
     "plot_scores",
@@ -62,6 +75,23 @@ LOOP_COLUMNS = ("graph", "current", "old", "current_stream", "old_stream", "curr
 #: per-stream trajectory files and the run-level files every run writes
 STREAM_FILES = ("vins_result_loop.csv", "trajectory_loop.tum", "trajectory_vio.tum")
 OUTPUT_FILES = ("loops.csv", "summary.json", "trajectory_top.png", "place_recognition_scores.png")
+
+
+def _names(names) -> str:
+    return "(" + "|".join(re.escape(n) for n in names) + ")"
+
+
+#: what an ``out`` folder written before the marker existed may hold to be replaced (``_atomic``):
+#: the files above (per-stream ones at the top or in ``stream<b>/``), ``pose_graph/`` and the
+#: temporaries older versions left
+LEGACY_OUTPUTS = (
+    _names(OUTPUT_FILES),
+    r"stream\d+",
+    r"(stream\d+/)?" + _names(STREAM_FILES),
+    r"(stream\d+/)?pose_graph",
+    *(r"(stream\d+/)?pose_graph/" + p for p in POSE_GRAPH_FILES),
+    *(r"(stream\d+/)?" + p for p in legacy_temporaries(*STREAM_FILES, *OUTPUT_FILES, "pose_graph")),
+)
 
 
 def stream_dir(out: Path, stream: int, num_streams: int) -> Path:
@@ -277,43 +307,50 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
+def check_out_folder(out) -> None:
+    """Raise ``OutputFolderError`` when ``out`` may not be replaced by a run's outputs (it holds
+    files the library did not write, or is a file); see the module docstring."""
+    check_replaceable(Path(os.path.realpath(out)), LEGACY_OUTPUTS)
+
+
 def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True) -> List[Path]:
-    """Write every output of ``run`` (a ``LoopRun``) into ``out``; returns the written paths."""
+    """Write every output of ``run`` (a ``LoopRun``) and swap the set in for ``out`` (module
+    docstring); returns the paths under ``out``."""
     from ..trajectory import write_tum, write_vins_csv
 
     t_all = time.perf_counter()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     written: List[Path] = []
     B = len(run.streams)
-    for s in run.streams:
-        d = stream_dir(out, s.stream, B)
-        d.mkdir(parents=True, exist_ok=True)
-        write_vins_csv(d / "vins_result_loop.csv", s.corrected)
-        write_tum(d / "trajectory_loop.tum", s.corrected)
-        write_tum(d / "trajectory_vio.tum", s.vio)
-        written += [d / n for n in STREAM_FILES]
-    p = out / "loops.csv"
-    write_text_atomic(p, loops_csv_text(run.loops))
-    written.append(p)
-    if save_graph:
-        for g, graph in enumerate(run.graphs):
-            d = graph_dir(out, g, run)
-            d.parent.mkdir(parents=True, exist_ok=True)
-            graph.save(d)
-            written.append(d)
-    if plots:
-        for name, data in (("trajectory_top.png", plot_trajectories(run)),
-                           ("place_recognition_scores.png", plot_scores(run))):
-            write_bytes_atomic(out / name, data)
-            written.append(out / name)
-    # summary.json last, with the time the outputs took (the plots dominate)
-    times = run.summary.setdefault("times", {})
-    if isinstance(times, dict):
-        times["outputs"] = round(time.perf_counter() - t_all, 6)
-    p = out / "summary.json"
-    write_text_atomic(p, json.dumps(_json_safe(run.summary), indent=2) + "\n")
-    written.append(p)
+    with StagedFolder(out, "loop", LEGACY_OUTPUTS) as stage:
+        tmp = stage.path
+        for s in run.streams:
+            d = stream_dir(tmp, s.stream, B)
+            d.mkdir(parents=True, exist_ok=True)
+            write_vins_csv(d / "vins_result_loop.csv", s.corrected)
+            write_tum(d / "trajectory_loop.tum", s.corrected)
+            write_tum(d / "trajectory_vio.tum", s.vio)
+            written += [stream_dir(out, s.stream, B) / n for n in STREAM_FILES]
+        (tmp / "loops.csv").write_bytes(loops_csv_text(run.loops).encode("utf-8"))
+        written.append(out / "loops.csv")
+        if save_graph:
+            for g, graph in enumerate(run.graphs):
+                d = graph_dir(tmp, g, run)
+                d.parent.mkdir(parents=True, exist_ok=True)
+                graph.save(d)
+                written.append(graph_dir(out, g, run))
+        if plots:
+            for name, data in (("trajectory_top.png", plot_trajectories(run)),
+                               ("place_recognition_scores.png", plot_scores(run))):
+                (tmp / name).write_bytes(data)
+                written.append(out / name)
+        # summary.json last, with the time the outputs took (the plots dominate)
+        times = run.summary.setdefault("times", {})
+        if isinstance(times, dict):
+            times["outputs"] = round(time.perf_counter() - t_all, 6)
+        (tmp / "summary.json").write_bytes((json.dumps(_json_safe(run.summary), indent=2) + "\n").encode("utf-8"))
+        written.append(out / "summary.json")
     return written
 
 

@@ -7,6 +7,7 @@ Importing this module imports neither torch nor tqdm (the CLI imports it to catc
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence, Tuple, Union
 
@@ -63,8 +64,9 @@ class InputOptions:
         """Raise ``OptionError`` for a value no reader accepts."""
         if self.max_frames is not None and self.max_frames < 1:
             raise OptionError("max_frames", f"max_frames must be >= 1, got {self.max_frames}")
-        if self.fps is not None and not self.fps > 0:
-            raise OptionError("fps", f"fps must be > 0, got {self.fps}")
+        if self.fps is not None and not (self.fps > 0 and math.isfinite(self.fps)):
+            # inf would put every frame at 0 s: the tracker would publish nothing
+            raise OptionError("fps", f"fps must be a finite frame rate > 0 (Hz), got {self.fps}")
 
 
 def resolve_device(device: Any, option: str = "device") -> torch.device:

@@ -164,6 +164,9 @@ class LoopOptions(InputOptions):
         for name in ("keyframe_distance", "keyframe_angle", "track_window"):
             if not getattr(self, name) >= 0:
                 raise OptionError(name, f"{name}: expected >= 0, got {getattr(self, name)}")
+        if not math.isfinite(self.keyframe_angle):  # its cosine is taken (inf: a math domain error)
+            raise OptionError("keyframe_angle", f"keyframe_angle: expected a finite number of degrees, "
+                                                f"got {self.keyframe_angle}")
         if not self.max_pose_gap > 0:
             raise OptionError("max_pose_gap", f"max_pose_gap: expected > 0, got {self.max_pose_gap}")
 
@@ -322,6 +325,10 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
     sources, poses = list(sources), list(poses)
     gts = [None] * len(sources) if ground_truth is None else list(ground_truth)
     _check_arguments(sources, poses, gts, opt)
+    if out is not None:  # an --out holding foreign files is refused before the run, not after it
+        from ..loop.report import check_out_folder
+
+        check_out_folder(out)
     times: Dict[str, float] = {}
     inp = _open_inputs(config, sources, poses, gts, opt, times)
     logs, skipped = _track(inp, opt, times)

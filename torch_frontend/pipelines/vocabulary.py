@@ -5,7 +5,9 @@ Convention:
     Descriptors are VINS's keyframe descriptors: FAST corners (``loop.fast``) and 256-bit BRIEF
     (``loop.brief``, ``(K, 4)`` int64 per image). A vocabulary file ending in ``.bin`` is VINS's
     binary layout (``brief_k10L6.bin``), anything else the package's ``.npz``
-    (``Vocabulary.save``). Files are written atomically.
+    (``Vocabulary.save``). The file is one output, written atomically (``_atomic.atomic_path``: a
+    temporary beside it renamed over it): an interrupted write (SIGINT, SIGTERM from the CLI)
+    leaves the previous file, and the next write of that file removes a killed writer's temporary.
 """
 
 from __future__ import annotations

@@ -73,9 +73,11 @@ class FeatureTracker:
             each call), so a stream's result does not depend on the other streams.
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
-    accepted) with ``H, W`` = the config's ``image_height``, ``image_width`` (mono; fusion takes any
-    size), and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
-    :class:`FeatureFrame`. ``step(state, ...)`` is the same without touching ``self.state``.
+    accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
+    :class:`FeatureFrame`. Image size: mono requires ``H, W`` = the config's ``image_height``,
+    ``image_width`` (``ValueError`` otherwise); fusion tracks each image at its real size, as
+    VINS-Fusion does (spec §6.2: the config's size is the estimator's), so any size works as long
+    as consecutive images keep one. ``step(state, ...)`` is the same without touching ``self.state``.
     """
 
     def __init__(

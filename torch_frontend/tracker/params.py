@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from typing import Any, Optional, Tuple
 
 import torch
@@ -108,6 +109,16 @@ class TrackerParams:
                              f"min_dist={self.min_dist}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size: expected positive width and height, got {self.width}x{self.height}")
+        if not self.freq > 0:
+            raise ValueError(f"freq: expected a publish rate > 0 Hz (a config's 0 reads as 100), got {self.freq}")
+        if not math.isfinite(self.F_threshold):
+            raise ValueError(f"F_threshold: expected a finite number of pixels, got {self.F_threshold}")
+        for name in ("camera", "camera1"):
+            cam = getattr(self, name)
+            problems = [] if cam is None else type(cam).param_problems(cam.params_dict())
+            if problems:  # a camera built by hand (the readers check calibration files themselves)
+                key, why = problems[0]
+                raise ValueError(f"{name}.{key}: {why}")
         self.check_image_size(self.height, self.width)
 
     def check_image_size(self, height: int, width: int) -> None:

@@ -1,10 +1,12 @@
 """One pure tracker step: ``state, frame = step(state, images, timestamps, params)``.
 
 Convention:
-    ``images (B, 1, H, W)`` uint8 (``(B, H, W)`` and float 0..255 accepted at the door: rounded and
-    clamped as cv_bridge would), ``timestamps (B,)`` float64 seconds, ``active (B,)`` bool (a stream
-    with False is left exactly as it was, e.g. a sequence that has ended). The state is not
-    modified: the step returns a new :class:`TrackerState` and a :class:`FeatureFrame`.
+    ``images (B, 1, H, W)`` uint8 (``(B, H, W)``, any strides and float 0..255 accepted at the door:
+    float is rounded and clamped as cv_bridge would; NaN pixels and float images in 0..1 are
+    refused), ``timestamps (B,)`` float64 seconds (float32 only where it resolves a millisecond:
+    not epoch seconds), ``active (B,)`` bool (a stream with False is left exactly as it was, e.g.
+    a sequence that has ended). The state is not modified: the step returns a new
+    :class:`TrackerState` and a :class:`FeatureFrame`.
 
     Mono (VINS-Mono ``feature_tracker``, spec §3): clock rules -> CLAHE -> pyramid -> LK, inBorder,
     compaction, ``track_cnt += 1`` -> on published frames rejectWithF, setMask, addPoints ->
@@ -18,6 +20,7 @@ Convention:
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Optional, Tuple
 
 import torch
@@ -43,16 +46,41 @@ from .state import TrackerState
 
 Tensor = torch.Tensor
 
+#: timestamps in a float type narrower than float64 are refused where its resolution at the given
+#: times is coarser than this (s): float32 resolves epoch seconds (1.4e9 s) only to 128 s, so frames
+#: share times and the clock publishes nothing; float32 seconds since the start (< 2^14 s, 4.5 h) pass
+TIMESTAMP_RESOLUTION = 1e-3
+
 
 # ---------------------------------------------------------------------------------------------
 # the door
 
 
+def _check_float_values(img: Tensor, rounded: Tensor, name: str) -> None:
+    """Refuse float images the 8-bit conversion would silently turn into garbage: NaN pixels
+    (they would become 0) and images in 0..1 (every stream whose values are all <= 1 with a
+    fractional one: rounding leaves a black and white image). One host sync, float input only."""
+    flat, frac = img.flatten(1), (img != rounded).flatten(1)
+    nan = torch.isnan(flat).any(1)
+    unit = (flat.amax(1) <= 1) & frac.any(1)
+    bad_nan, bad_unit = torch.stack((nan.any(), unit.any())).tolist()
+    if bad_nan:
+        streams = nan.nonzero().flatten().tolist()
+        raise ValueError(f"{name}: NaN pixels in stream(s) {streams} (not a grey level: 8-bit conversion would "
+                         f"read them as 0)")
+    if bad_unit:
+        streams = unit.nonzero().flatten().tolist()
+        raise ValueError(f"{name}: image values look like 0..1 (stream(s) {streams}: all <= 1, not integers); "
+                         f"this library expects grey levels 0..255 (multiply by 255)")
+
+
 def check_images(images, params: TrackerParams, batch: int, device, name: str = "images",
                  size: Optional[Tuple[int, int]] = None) -> Tensor:
-    """``images`` as ``(B, 1, H, W)`` uint8 on ``device``. Mono: ``H, W`` must be the config's;
-    fusion takes any size the kernels can work on, but ``size`` (the previous image's ``(H, W)``)
-    when given: LK needs both images of a pair at one size."""
+    """``images`` as contiguous ``(B, 1, H, W)`` uint8 on ``device``. Mono: ``H, W`` must be the
+    config's; fusion tracks each image at its real size as VINS-Fusion (spec §6.2; the config's
+    size is the estimator's), any size the kernels can work on, but ``size`` (the previous image's
+    ``(H, W)``) when given: LK needs both images of a pair at one size. Float input: NaN pixels and
+    0..1 images raise ``ValueError`` (:func:`_check_float_values`)."""
     img = as_image_batch(torch.as_tensor(images), name)
     if img.shape[0] != batch:
         raise ValueError(f"{name}: expected {batch} streams (B, 1, H, W), got {tuple(img.shape)}")
@@ -67,18 +95,44 @@ def check_images(images, params: TrackerParams, batch: int, device, name: str = 
     img = img.to(device)
     if img.dtype != torch.uint8:
         # VINS works on 8-bit images; float input is rounded and clamped the way cv_bridge would.
-        img = img.round().clamp(0, 255).to(torch.uint8)
-    return img
+        rounded = img.round()
+        _check_float_values(img, rounded, name)
+        img = rounded.clamp(0, 255).to(torch.uint8)
+    # the kernels view images as flat rows: a transposed or expanded image is copied (no-op otherwise)
+    return img.contiguous()
+
+
+def _narrow_float(timestamps) -> Optional[torch.dtype]:
+    """The float dtype of a tensor / numpy array or scalar narrower than float64, else None."""
+    if isinstance(timestamps, torch.Tensor):
+        dt = timestamps.dtype
+    elif hasattr(timestamps, "dtype") and hasattr(timestamps, "shape"):  # numpy, without importing it
+        dt = torch.as_tensor(timestamps).dtype
+    else:
+        return None  # Python numbers and sequences are converted to float64 exactly
+    return dt if dt.is_floating_point and torch.finfo(dt).bits < 64 else None
 
 
 def check_timestamps(timestamps, batch: int, device) -> Tensor:
-    """``(B,)`` float64 finite seconds on ``device`` (a scalar is broadcast to every stream)."""
+    """``(B,)`` float64 finite seconds on ``device`` (a scalar is broadcast to every stream).
+
+    A float32 (or narrower) tensor or array is refused where it cannot resolve
+    ``TIMESTAMP_RESOLUTION`` at its times (epoch seconds): the precision is gone before the cast.
+    """
+    narrow = _narrow_float(timestamps)
     t = torch.as_tensor(timestamps, dtype=torch.float64)
     if t.dim() == 0:
         t = t.expand(batch)
     check_shape(t, (batch,), "timestamps")
     if not torch.isfinite(t).all():
         raise ValueError("timestamps: expected finite seconds, got a NaN or infinity")
+    if narrow is not None:
+        tmax = float(t.abs().max())
+        step = torch.finfo(narrow).eps * 2.0 ** math.floor(math.log2(tmax)) if tmax > 0 else 0.0
+        if step > TIMESTAMP_RESOLUTION:
+            dt = str(narrow).replace("torch.", "")
+            raise ValueError(f"timestamps are {dt}: epoch seconds need float64 ({dt} resolves {tmax:.6g} s only "
+                             f"to {step:g} s, so frames share times and nothing is published)")
     return t.to(device)
 
 
