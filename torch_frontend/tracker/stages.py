@@ -30,7 +30,7 @@ from ..masks import _distance_mask_impl
 from ..pyramid import Pyramid, _build_pyramid_impl
 from ..ransac import _find_fundamental_impl, _seeds, opencv_threshold_confidence
 from .params import TrackerParams
-from .table import FeatureTable
+from .table import FeatureTable, where_streams
 
 Tensor = torch.Tensor
 
@@ -38,16 +38,6 @@ Tensor = torch.Tensor
 def no_stage(name: str):
     """The default ``stage`` hook: labels nothing."""
     return contextlib.nullcontext()
-
-
-def _per_stream(mask: Tensor, x: Tensor) -> Tensor:
-    """``mask (B,)`` broadcast against ``x (B, ...)``."""
-    return mask.reshape(mask.shape + (1,) * (x.dim() - 1))
-
-
-def where_streams(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
-    """Stream b of ``new`` where ``mask[b]``, else of ``old``."""
-    return torch.where(_per_stream(mask, new), new, old)
 
 
 # ---------------------------------------------------------------------------------------------

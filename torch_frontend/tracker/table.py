@@ -27,6 +27,11 @@ from .._checks import gather_slots, valid_first_order
 Tensor = torch.Tensor
 
 
+def where_streams(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
+    """Stream b of ``new`` where ``mask[b]`` (``(B,)`` bool), else of ``old`` (``(B, ...)`` each)."""
+    return torch.where(mask.reshape(mask.shape + (1,) * (new.dim() - 1)), new, old)
+
+
 @dataclasses.dataclass
 class FeatureTable:
     """VINS's parallel feature arrays, ``(B, K, ...)`` each.
@@ -138,12 +143,7 @@ class FeatureTable:
     # ------------------------------------------------------------------ per stream
     def where_streams(self, active: Tensor, other: FeatureTable) -> FeatureTable:
         """Stream b from ``self`` where ``active[b]`` else from ``other`` (same columns present)."""
-        def pick(name, new):
-            old = getattr(other, name)
-            a = active.reshape(active.shape + (1,) * (new.dim() - 1))
-            return torch.where(a, new, old)
-
-        return self._map(pick)
+        return self._map(lambda name, new: where_streams(active, new, getattr(other, name)))
 
     def committed(self) -> FeatureTable:
         """The table as it is stored between steps: empty slots hold ``ids = -1`` and
@@ -157,4 +157,4 @@ class FeatureTable:
         return out
 
 
-__all__ = ["FeatureTable"]
+__all__ = ["FeatureTable", "where_streams"]
