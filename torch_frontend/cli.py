@@ -17,11 +17,18 @@ plots (``pipelines.loop.run_loop``, ``torch_frontend.loop.report``); ``torch-fro
 does the same on a rendered sequence that revisits places (``pipelines.loop.demo_loop``).
 ``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``.
 
+Under ``torchrun`` (``torchrun --nproc-per-node N -m torch_frontend track|loop|vocabulary train
+...``) every rank runs the command on its block of the inputs (``pipelines.sharded``): each rank on
+``cuda:LOCAL_RANK`` when CUDA is present (``--device`` not given), rank 0 printing the merged
+summary; ``--timeout`` bounds how long a rank may go without progress. ``--workers N`` decodes the
+frames in DataLoader workers (``pipelines.prefetch``).
+
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
 wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
 stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
 130 when interrupted (Ctrl-C, SIGINT), 143 on SIGTERM. A pipeline's ``OptionError`` names its
-option; the line names the flag.
+option; the line names the flag. Under ``torchrun`` an error every rank meets is printed by rank 0
+only; a rank's own failure by that rank (``rank r (inputs): ...``) and by rank 0 (the job's line).
 
 SIGINT and SIGTERM stop a command the same way (a ``KeyboardInterrupt``, while the command runs;
 the previous handlers come back after it): the run removes its temporary folder, so ``--out``
@@ -52,7 +59,7 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
-                "camera": "--camera"}
+                "camera": "--camera", "workers": "--workers"}
 _TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
 _LOOP_FLAGS = {
@@ -98,7 +105,17 @@ def format_summary(s: Dict[str, Any]) -> str:
     ]
     for k in s.get("skipped", [])[:5]:
         lines.append(f"              stream {k['stream']}: {k['reason']}")
-    if "out" in s:
+    if "decode_seconds" in s:
+        lines.append(f"input         decoding {s['decode_seconds']:.2f} s ({s.get('workers', 0)} workers), "
+                     f"waited {s['input_wait_seconds']:.2f} s for frames, tracker {s.get('tracker_seconds', 0):.2f} s")
+    dist = s.get("distributed")
+    if dist:
+        lines.append(f"ranks         {dist['world_size']} ({dist['backend']}): "
+                     + ", ".join(f"rank {r['rank']} {len(r['streams'])} streams" for r in dist["ranks"]))
+    if "out" in s and dist:
+        lines.append(f"outputs       {s['out']}/ (stream<b>/ per input: features.csv, features.npz, summary.json, "
+                     f"plots, tracks/; index.json, summary.json)")
+    elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
                      f"features_per_frame.png, track_length_hist.png, tracks/)")
     return "\n".join(lines)
@@ -124,7 +141,14 @@ def format_loop_summary(s: Dict[str, Any]) -> str:
                      f"for all streams)")
     t = s.get("times", {})
     lines.append("times         " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
-    if "out" in s:
+    dist = s.get("distributed")
+    if dist:
+        lines.append(f"ranks         {dist['world_size']} ({dist['backend']}): "
+                     + ", ".join(f"rank {r['rank']} {len(r['streams'])} streams" for r in dist["ranks"]))
+    if "out" in s and dist and not s["shared_map"]:
+        lines.append(f"outputs       {s['out']}/ (stream<b>/ per input: the loop outputs of that input; "
+                     f"index.json, summary.json)")
+    elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (vins_result_loop.csv, trajectory_loop.tum, trajectory_vio.tum, "
                      f"loops.csv, pose_graph/, summary.json, trajectory_top.png, place_recognition_scores.png)")
     return "\n".join(lines)
@@ -147,10 +171,24 @@ def _check_inputs(config, sources: Sequence[Tuple[str, str]], kinds: str) -> Non
                           "provides sensor.yaml")
 
 
+def _sharded() -> bool:
+    """Whether a launcher (``torchrun``) started this process as a rank of a job."""
+    from .distributed.env import launched
+
+    return launched()
+
+
+def _device(args: argparse.Namespace):
+    """``--device``; not given: CPU for one process, each rank's own device under ``torchrun``
+    (``cuda:{LOCAL_RANK}`` when CUDA is present)."""
+    return args.device if args.device is not None or _sharded() else "cpu"
+
+
 def _input_options(args: argparse.Namespace) -> Dict[str, Any]:
     """``InputOptions`` fields from the reader flags of ``track``/``loop``."""
-    return dict(device=args.device, max_frames=args.max_frames, camera=args.camera, fps=args.fps,
-                topic=args.topic, skip_bad_frames=args.skip_bad_frames, progress=_progress(args))
+    return dict(device=_device(args), max_frames=args.max_frames, camera=args.camera, fps=args.fps,
+                topic=args.topic, skip_bad_frames=args.skip_bad_frames, progress=_progress(args),
+                workers=args.workers)
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
@@ -159,6 +197,13 @@ def _cmd_track(args: argparse.Namespace) -> int:
     sources = args.sources or []
     _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks)
+    if _sharded():
+        from .pipelines.sharded import run_track_sharded
+
+        summary = run_track_sharded(args.config, sources, args.out, opt, timeout=args.timeout)
+        if summary is not None:  # rank 0
+            print(format_summary(summary))
+        return 0
     print(format_summary(run_track(args.config, sources, args.out, opt)))
     return 0
 
@@ -178,6 +223,14 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
     )
+    if _sharded():
+        from .pipelines.sharded import run_loop_sharded
+
+        summary = run_loop_sharded(args.config, sources, args.poses or [], args.out, opt,
+                                   ground_truth=args.ground_truth, timeout=args.timeout)
+        if summary is not None:  # rank 0
+            print(format_loop_summary(summary))
+        return 0
     run = run_loop(args.config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
     print(format_loop_summary(run.summary))
     return 0
@@ -196,7 +249,7 @@ def _cmd_demo_loop(args: argparse.Namespace) -> int:
     out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
     print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
           f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
-    opt = demo_options(separate_graphs=args.separate_graphs, device=args.device, progress=_progress(args),
+    opt = demo_options(separate_graphs=args.separate_graphs, device=args.device or "cpu", progress=_progress(args),
                        tracker_mode=args.mode, max_frames=args.max_frames)
     run = demo_loop(out, opt, two_sequences=args.two_sequences)
     print(format_loop_summary(run.summary))
@@ -214,7 +267,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = load_config(args.config or default_config_path())
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
-    opt = TrackOptions(device=args.device, mode=args.mode, max_frames=args.max_frames,
+    opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args))
     print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
     return 0
@@ -226,9 +279,16 @@ def _cmd_vocabulary(args: argparse.Namespace) -> int:
     if args.vocabulary_command != "train":
         raise _UsageError("vocabulary: expected a subcommand: train")
     opt = VocabularyOptions(k=args.k, L=args.L, fast_threshold=args.fast_threshold, max_images=args.max_images,
-                            max_keypoints=args.max_keypoints, seed=args.seed, device=args.device,
+                            max_keypoints=args.max_keypoints, seed=args.seed, device=_device(args),
                             progress=_progress(args))
-    s = run_vocabulary_train(args.images, args.out, opt)
+    if _sharded():
+        from .pipelines.sharded import run_vocabulary_train_sharded
+
+        s = run_vocabulary_train_sharded(args.images, args.out, opt, timeout=args.timeout)
+        if s is None:  # not rank 0
+            return 0
+    else:
+        s = run_vocabulary_train(args.images, args.out, opt)
     print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
           f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
     return 0
@@ -264,6 +324,22 @@ def _frame_rate(s: str) -> float:
     return v
 
 
+def _non_negative_int(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {s}")
+    return v
+
+
+def _add_timeout(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--timeout", type=_positive_float, default=None, metavar="S",
+                   help="under torchrun: seconds a rank may go without progress before the job fails "
+                        "naming it, and the collectives' timeout (default: 1800)")
+
+
 def _positive_int(s: str) -> int:
     try:
         v = int(s)
@@ -278,7 +354,8 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str | None) -> Non
     p.add_argument("--out", type=Path, default=None if out_default is None else Path(out_default),
                    required=out_default is None, metavar="DIR",
                    help="output folder" + ("" if out_default is None else f" (default: {out_default})"))
-    p.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    p.add_argument("--device", default=None,
+                   help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
     p.add_argument("--mode", choices=("mono", "fusion"), default="mono",
                    help="VINS-Mono feature_tracker or VINS-Fusion tracker rules (default: mono)")
     p.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
@@ -304,6 +381,10 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
                    help="camera folder of --euroc inputs (default: cam0)")
     p.add_argument("--skip-bad-frames", action="store_true",
                    help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
+    p.add_argument("--workers", type=_non_negative_int, default=0, metavar="N",
+                   help="decode the frames in N DataLoader worker processes ahead of the tracker "
+                        "(default: 0, in the tracking process)")
+    _add_timeout(p)
     return src
 
 
@@ -404,7 +485,8 @@ def _add_loop(sub) -> None:
     loop.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
                       help="stop after N frames per stream")
     loop.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
-    loop.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    loop.add_argument("--device", default=None,
+                      help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
     loop.add_argument("--no-progress", action="store_true", help="no progress bar")
     loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
@@ -439,7 +521,9 @@ def _add_vocabulary(sub) -> None:
     vtrain.add_argument("--max-keypoints", type=_positive_int, default=None, metavar="N",
                         help="keep the N strongest FAST corners per image (default: all)")
     vtrain.add_argument("--seed", type=int, default=0, help="k-medians seeding (default: 0)")
-    vtrain.add_argument("--device", default="cpu", help="cpu or cuda (default: cpu)")
+    vtrain.add_argument("--device", default=None,
+                        help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
+    _add_timeout(vtrain)
     vtrain.add_argument("--no-progress", action="store_true", help="no progress bar")
     vocab.set_defaults(func=_cmd_vocabulary, flags=_VOCABULARY_FLAGS)
 
@@ -517,31 +601,64 @@ def _interrupt_signals():
             signal.signal(sig, prev)
 
 
+def _rank() -> int:
+    """This process's rank under a launcher (0 without one)."""
+    from .distributed.env import dist_env
+
+    try:
+        return dist_env().rank
+    except ValueError:  # a malformed RANK: let the command report it
+        return 0
+
+
 def main(argv: List[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    from .distributed.job import JobAborted, RankFailure
+
+    # Under torchrun every rank runs this: an error every rank meets (a bad option, config or
+    # output folder) is printed by rank 0 only; a rank's own failure by that rank, rank 0 adding
+    # the job's one-line report (pipelines.sharded).
+    rank = _rank()
+
+    def error(exc: BaseException, msg: str) -> None:
+        if rank == 0 or getattr(exc, "rank_error", False):
+            _error(msg if rank == 0 or msg.startswith("rank ") else f"rank {rank}: {msg}")
+
     try:
         with _interrupt_signals():
             return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
-        _error(str(exc))
+        error(exc, str(exc))
         return EXIT_USAGE
     except OptionError as exc:
-        _error(_option_message(exc, getattr(args, "flags", {})))
+        error(exc, _option_message(exc, getattr(args, "flags", {})))
         return EXIT_USAGE
+    except RankFailure as exc:
+        error(exc, f"{exc}; no merged summary written")
+        return exc.exit_code
     except DataError as exc:
-        _error(str(exc))
+        error(exc, str(exc))
+        return EXIT_DATA
+    except JobAborted as exc:
+        if not exc.quiet:
+            error(exc, str(exc))
         return EXIT_DATA
     except KeyboardInterrupt as exc:
         term = getattr(exc, "signum", signal.SIGINT) == signal.SIGTERM
-        _error(f"interrupted{' (SIGTERM)' if term else ''}: no partial output left (the output folder holds "
+        detail = getattr(exc, "detail", None)
+        msg = (f"interrupted{' (SIGTERM)' if term else ''}: no partial output left (the output folder holds "
                f"its previous complete outputs, or this run's if it had finished writing them)")
+        if detail:  # a sharded run: who had not finished (torchrun stops every rank when one dies)
+            msg = (f"interrupted{' (SIGTERM)' if term else ''}: {detail}; no merged summary written (complete "
+                   f"per-input outputs stay)")
+        error(exc, msg)
         return EXIT_TERMINATED if term else EXIT_INTERRUPTED
     except OSError as exc:  # e.g. --out is a file, a read-only folder, a full disk; an unreadable input
-        _error(_os_error_message(exc, getattr(args, "out", None)))
+        error(exc, _os_error_message(exc, getattr(args, "out", None)))
         return EXIT_DATA
 
 

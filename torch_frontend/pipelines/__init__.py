@@ -9,7 +9,11 @@
   :func:`load_vocabulary` (the package's ``.npz``, VINS's ``.bin``, DBoW2 YAML).
 * shared: ``inputs`` (``resolve_config``, ``open_inputs`` for ``(kind, path)`` sources,
   ``ArraySequence``), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
-  ``pad_ragged``, ``resolve_device``).
+  ``pad_ragged``, ``resolve_device``), ``prefetch`` (:class:`FrameStream`: ``MultiStream``'s
+  batches with the frames decoded in DataLoader workers, ``InputOptions.workers``).
+* sharded over the ranks of a ``torch.distributed`` job (``torchrun``): ``sharded``
+  (:func:`run_track_sharded`, :func:`run_loop_sharded`, :func:`run_vocabulary_train_sharded`;
+  ``track.track_streams`` writes one output set per stream).
 
 Bad options raise ``OptionError`` (a ``ValueError``) whose message starts with the option's name;
 the CLI maps its flags to these names. Names are imported lazily.
@@ -30,6 +34,11 @@ _EXPORTS = {
     "resolve_config": "inputs",
     "TrackOptions": "track",
     "run_track": "track",
+    "track_streams": "track",
+    "FrameStream": "prefetch",
+    "run_track_sharded": "sharded",
+    "run_loop_sharded": "sharded",
+    "run_vocabulary_train_sharded": "sharded",
     "LoopOptions": "loop",
     "LoopRecord": "loop",
     "LoopRun": "loop",

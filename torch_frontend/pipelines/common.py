@@ -50,6 +50,8 @@ class InputOptions:
         skip_bad_frames: skip unreadable or corrupt frames (listed in the summary) instead of
             raising ``DataError``.
         progress: tqdm bars on stderr: True always, False never, None only on a terminal.
+        workers: ``torch.utils.data.DataLoader`` worker processes that decode the frames ahead of
+            the tracker (``pipelines.prefetch.FrameStream``); 0: decode in this process.
     """
 
     device: Union[str, torch.device] = "cpu"
@@ -59,9 +61,12 @@ class InputOptions:
     topic: Optional[str] = None
     skip_bad_frames: bool = False
     progress: Optional[bool] = None
+    workers: int = 0
 
     def check(self) -> None:
         """Raise ``OptionError`` for a value no reader accepts."""
+        if not isinstance(self.workers, int) or self.workers < 0:
+            raise OptionError("workers", f"workers must be an integer >= 0, got {self.workers!r}")
         if self.max_frames is not None and self.max_frames < 1:
             raise OptionError("max_frames", f"max_frames must be >= 1, got {self.max_frames}")
         if self.fps is not None and not (self.fps > 0 and math.isfinite(self.fps)):

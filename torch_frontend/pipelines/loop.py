@@ -331,7 +331,29 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
         check_out_folder(out)
     times: Dict[str, float] = {}
     inp = _open_inputs(config, sources, poses, gts, opt, times)
-    logs, skipped = _track(inp, opt, times)
+    prep = _prepare_streams(inp, opt, times)
+    return _finish(inp, prep, opt, times, t_start, out, extra_summary)
+
+
+@dataclass
+class _Prepared:
+    """Stages 1-4 of every stream (what the vocabulary and pose-graph stages take): the keyframe
+    logs, skipped bad frames, triangulated points and keyframe descriptors, and the input
+    pipeline's times."""
+
+    logs: List[KeyframeLog]
+    skipped: int
+    tri: List[Any]
+    descs: List[Any]
+    input_times: Dict[str, Any]
+    skipped_per_stream: List[int] = field(default_factory=list)
+
+
+def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None) -> _Prepared:
+    """Stages 1-4: tracking (B streams in one batch), keyframes, triangulation, description. Each
+    stream's results are its own (the stages treat streams independently). ``beat``: called per
+    tracker step (a sharded run's heartbeat)."""
+    logs, skipped, input_times, per_stream = _track(inp, opt, times, beat)
     t0 = _time.perf_counter()
     tri = [triangulate_keyframes(log, inp.R_ic, inp.t_ic, opt.triangulation_chunk, opt.track_window)
            for log in logs]
@@ -341,7 +363,22 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
     descs = [describe_keyframe_images(log.kf_images, tri[b][0], cam_d, inp.device, opt.describe_batch)
              for b, log in enumerate(logs)]
     times["description"] = _time.perf_counter() - t0
-    voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
+    return _Prepared(logs, skipped, tri, descs, input_times, per_stream)
+
+
+def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, float], t_start: float,
+            out: Optional[PathLike], extra_summary: Optional[Dict[str, Any]] = None,
+            vocabulary: Optional[Tuple[Any, Dict[str, Any], float]] = None) -> LoopRun:
+    """Stages 5-6 and the outputs: vocabulary (``vocabulary``: an already trained one, its
+    summary entry and training seconds), pose graphs, trajectories and ATE, the summary, ``out``
+    (None: nothing)."""
+    logs, tri, descs = prep.logs, prep.tri, prep.descs
+    if vocabulary is None:
+        voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
+    else:
+        voc, voc_info = vocabulary[0], dict(vocabulary[1])
+        times.pop("vocabulary_load", None)
+        times["vocabulary"] = vocabulary[2]
     gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
     t_opt = sum(g.optimize_seconds for g in gr.graphs)
     times["recognition_verification"] = gr.seconds - t_opt
@@ -349,7 +386,8 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
     for log in logs:  # the images live on in the keyframes' owners only when asked for
         log.kf_images = []
     ate = _trajectories_and_ate(inp, gr, opt)
-    summary = _summary(inp, opt, gr, ate, voc_info, times, skipped, _time.perf_counter() - t_start)
+    summary = _summary(inp, opt, gr, ate, voc_info, times, prep.skipped, _time.perf_counter() - t_start)
+    summary.update(prep.input_times)
     if extra_summary:
         summary.update(extra_summary)
     run = LoopRun(gr.graphs, gr.streams, gr.loops, summary, gr.images, None if out is None else Path(out))
@@ -378,11 +416,13 @@ def _check_arguments(sources: List[Any], poses: List[Any], gts: List[Any], opt: 
     opt.check()
 
 
-def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str, float]) -> _Inputs:
-    """Config, extrinsic, sequences, poses, ground truth and vocabulary, all checked before the
-    long part; poses that miss a stream's images entirely fail here, not after tracking."""
+def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str, float],
+                 load_vocabulary: bool = True) -> _Inputs:
+    """Config, extrinsic, sequences, poses, ground truth and vocabulary (unless
+    ``load_vocabulary`` is False), all checked before the long part; poses that miss a stream's
+    images entirely fail here, not after tracking."""
     from ..loop.vocabulary import Vocabulary
-    from .vocabulary import load_vocabulary
+    from .vocabulary import load_vocabulary as _load_vocabulary
 
     dev = resolve_device(opt.device)
     cfg = resolve_config(config, sources, opt.camera)
@@ -396,8 +436,8 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     gt_trajs = [None if g is None else as_trajectory(g, "ground truth") for g in gts]
     voc = None
     t0 = _time.perf_counter()
-    if opt.vocabulary is not None:
-        voc = opt.vocabulary if isinstance(opt.vocabulary, Vocabulary) else load_vocabulary(opt.vocabulary)
+    if opt.vocabulary is not None and load_vocabulary:
+        voc = opt.vocabulary if isinstance(opt.vocabulary, Vocabulary) else _load_vocabulary(opt.vocabulary)
     if opt.load_graph is not None and not (Path(opt.load_graph) / "pose_graph.txt").is_file():
         raise DataError(f"{opt.load_graph}: no saved pose graph here (pose_graph.txt missing)")
     times["vocabulary_load"] = _time.perf_counter() - t0
@@ -411,16 +451,19 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     return _Inputs(cfg, dev, R_ic, t_ic, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
 
 
-def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float]) -> Tuple[List[KeyframeLog], int]:
-    """Stages 1-2: track every stream and pick its keyframes; returns the logs and the number of
-    skipped bad frames."""
-    from ..io import MultiStream
+def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
+           ) -> Tuple[List[KeyframeLog], int, Dict[str, Any], List[int]]:
+    """Stages 1-2: track every stream and pick its keyframes; returns the logs, the number of
+    skipped bad frames, the input pipeline's times (``workers``, ``decode_seconds``,
+    ``input_wait_seconds``) and the skipped frames per stream."""
     from ..tracker import FeatureTracker
+    from .prefetch import FrameStream
 
     B = len(inp.seqs)
     logs = [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
                         opt.keyframe_angle, opt.keyframe_every) for b in range(B)]
-    stream = MultiStream(inp.seqs, size=(inp.cfg.image_height, inp.cfg.image_width), max_steps=opt.max_frames)
+    stream = FrameStream(inp.seqs, size=(inp.cfg.image_height, inp.cfg.image_width), max_steps=opt.max_frames,
+                         workers=opt.workers, pin_memory=inp.device.type == "cuda")
     tracker = FeatureTracker(inp.cfg, num_streams=B, device=inp.device, mode=opt.tracker_mode)
     with progress_bar(opt.progress, frames_to_read(inp.seqs, opt.max_frames), "tracking", "frame") as bar:
         t0 = _time.perf_counter()
@@ -437,6 +480,8 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float]) -> Tuple[Lis
                 if pub[b]:
                     m = valid[b] & (ids[b] >= 0)
                     logs[b].add(float(ts[b]), ids[b][m], xy[b][m], uv[b][m], batch.raw[b])
+            if beat is not None:
+                beat()
     times["tracking"] = _time.perf_counter() - t0
     for b, log in enumerate(logs):
         if not any(log.covered):
@@ -446,7 +491,10 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float]) -> Tuple[Lis
         if not log.kf_frames:
             raise DataError(f"{log.name}: no keyframe (no published frame with tracked features inside the poses' "
                             f"time span {span(log.traj.time.numpy())})")
-    return logs, len(stream.skipped)
+    input_times = {"workers": int(opt.workers), "decode_seconds": round(stream.decode_seconds, 6),
+                   "input_wait_seconds": round(stream.wait_seconds, 6)}
+    per_stream = [sum(1 for k in stream.skipped if k[0] == b) for b in range(B)]
+    return logs, len(stream.skipped), input_times, per_stream
 
 
 def _vocabulary(voc, descs: List[List[Dict[str, torch.Tensor]]], opt: LoopOptions, times: Dict[str, float]):

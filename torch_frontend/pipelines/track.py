@@ -12,12 +12,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, Sequence, Tuple
+from typing import Any, Dict, Iterator, List, Sequence, Tuple
 
 from .common import InputOptions, OptionError, progress_bar, resolve_device
 from .inputs import Source, frames_to_read, open_inputs, resolve_config, stream_names
+from .prefetch import FrameStream
 
-__all__ = ["TrackOptions", "run_track", "tracked_batches"]
+__all__ = ["TrackOptions", "run_track", "track_streams", "tracked_batches"]
 
 TRACKER_MODES = ("mono", "fusion")
 
@@ -48,9 +49,13 @@ def tracked_batches(tracker, stream, device, bar=None) -> Iterator[Tuple[Any, An
     None) advances by the alive streams after the caller has used the step."""
     import torch
 
+    cuda = device.type == "cuda"
     for batch in stream:
         t1 = time.perf_counter()
-        frame = tracker.track(batch.images.to(device), batch.timestamps, active=batch.alive.to(device))
+        # non_blocking: from FrameStream's pinned staging buffers the copy is asynchronous (the
+        # tracker's kernels are queued behind it on the same stream)
+        frame = tracker.track(batch.images.to(device, non_blocking=cuda), batch.timestamps,
+                              active=batch.alive.to(device))
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         yield batch, frame, time.perf_counter() - t1
@@ -75,7 +80,6 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         OptionError: bad options or no source; ConfigError, DataError: bad config or inputs.
         ``KeyboardInterrupt`` passes through after the temporaries are removed.
     """
-    from ..io import MultiStream
     from ..outputs import RunRecorder
     from ..tracker import FeatureTracker
 
@@ -87,7 +91,8 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     dev = resolve_device(opt.device)
     cfg = resolve_config(config, sources, opt.camera)
     seqs = open_inputs(sources, cfg, opt)
-    stream = MultiStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames)
+    stream = FrameStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames,
+                         workers=opt.workers, pin_memory=dev.type == "cuda")
     tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
     steps = 0
     tracker_seconds = 0.0
@@ -106,6 +111,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         extra = {
             "steps": steps,
             "tracker_seconds": round(tracker_seconds, 6),
+            **_input_times(stream, opt.workers),
             "config": str(cfg.path),
             "mode": opt.mode,
             "device": str(dev),
@@ -115,6 +121,121 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         summary = rec.summary(seconds, stream.skipped, extra=extra)
         rec.write(summary)
     return summary
+
+
+def _input_times(stream, workers: int) -> Dict[str, Any]:
+    """The summary's decode entries: ``workers``, ``decode_seconds`` (the readers' decoding, summed
+    over the workers) and ``input_wait_seconds`` (the tracking loop waiting for frames)."""
+    return {"workers": int(workers), "decode_seconds": round(stream.decode_seconds, 6),
+            "input_wait_seconds": round(stream.wait_seconds, 6)}
+
+
+def _stream_view(batch, frame, b: int):
+    """Stream ``b`` of a ``MultiStream`` batch and of a ``FeatureFrame`` as a batch of one."""
+    import dataclasses
+
+    import torch
+
+    sub = type(batch)(step=batch.step, images=batch.images[b:b + 1], timestamps=batch.timestamps[b:b + 1],
+                      stamps_ns=batch.stamps_ns[b:b + 1], alive=batch.alive[b:b + 1], sources=[batch.sources[b]],
+                      raw=[batch.raw[b]])
+    fields = {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
+    one = type(frame)(**{k: v[b:b + 1] if isinstance(v, torch.Tensor) else v for k, v in fields.items()})
+    return sub, one
+
+
+def _on_cpu(frame):
+    """A ``FeatureFrame`` with its tensors on the CPU."""
+    import dataclasses
+
+    import torch
+
+    return type(frame)(**{f.name: (v.cpu() if isinstance(v, torch.Tensor) else v)
+                          for f in dataclasses.fields(frame) for v in (getattr(frame, f.name),)})
+
+
+def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], options: TrackOptions | None = None,
+                  *, extra: Dict[str, Any] | None = None, beat=None) -> Dict[str, Any]:
+    """Track ``sources`` as B streams of one batched tracker, as :func:`run_track`, but write each
+    stream's outputs into its own folder ``outs[b]``: the output set one ``run_track`` of that
+    source alone writes (the tracker treats every stream on its own, so its files are identical),
+    committed as soon as the stream ends. Its ``summary.json`` has the one-stream run's entries
+    (times are the batch's while the stream ran) and ``extra``.
+
+    ``beat`` (a callable or None) is called once per step (``distributed.Job.beat``: heartbeats,
+    and a way to stop the run by raising). Returns ``{"streams": [per stream: {"summary",
+    "lengths" (track lengths, int64 numpy)}], "steps", "seconds", "tracker_seconds",
+    "decode_seconds", "input_wait_seconds", "device"}``.
+
+    Raises:
+        as :func:`run_track`; the streams already written stay, the others leave no output.
+    """
+    import contextlib
+
+    from ..outputs import RunRecorder
+    from ..tracker import FeatureTracker
+
+    opt = TrackOptions() if options is None else options
+    sources, outs = list(sources), list(outs)
+    if len(outs) != len(sources):
+        raise OptionError("outs", f"outs: expected one folder per source ({len(sources)}), got {len(outs)}")
+    if not sources:
+        raise OptionError("sources", "sources: no input given (expected at least one (kind, path) or io Sequence)")
+    opt.check()
+    dev = resolve_device(opt.device)
+    cfg = resolve_config(config, sources, opt.camera)
+    seqs = open_inputs(sources, cfg, opt)
+    names = stream_names(seqs)
+    stream = FrameStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames,
+                         workers=opt.workers, pin_memory=dev.type == "cuda")
+    tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
+    B = len(seqs)
+    results: List[Dict[str, Any] | None] = [None] * B
+    steps = 0
+    tracker_seconds = 0.0
+    t0 = time.perf_counter()
+
+    def finish(b: int, rec) -> None:
+        seconds = time.perf_counter() - t0
+        skipped = [(0, src, why) for sb, src, why in stream.skipped if sb == b]
+        info = {
+            "steps": int(rec.frames[0]),
+            "tracker_seconds": round(tracker_seconds, 6),
+            **_input_times(stream, opt.workers),
+            "config": str(cfg.path),
+            "mode": opt.mode,
+            "device": str(dev),
+            "inputs": [_input_entry(sources[b], seqs[b])],
+            "out": str(Path(outs[b])),
+            **(extra or {}),
+        }
+        summary = rec.summary(seconds, skipped, extra=info)
+        rec.write(summary)
+        results[b] = {"summary": summary, "lengths": rec.track_lengths()}
+
+    with contextlib.ExitStack() as stack:
+        recs = [stack.enter_context(RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks)) for b in range(B)]
+        started = [False] * B
+        with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
+            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
+                tracker_seconds += step_seconds
+                if dev.type != "cpu":  # one copy per field, not one per stream
+                    frame = _on_cpu(frame)
+                alive = batch.alive.tolist()
+                for b in range(B):
+                    if alive[b]:
+                        recs[b].add(*_stream_view(batch, frame, b))
+                        started[b] = True
+                    elif started[b] and results[b] is None:  # ended: its outputs are complete
+                        finish(b, recs[b])
+                steps += 1
+                if beat is not None:
+                    beat()
+        for b in range(B):
+            if results[b] is None:
+                finish(b, recs[b])
+    return {"streams": results, "steps": steps, "seconds": round(time.perf_counter() - t0, 6),
+            "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers), "device": str(dev)}
 
 
 def _input_entry(source: Source, seq) -> Dict[str, Any]:

@@ -100,9 +100,11 @@ def _check_out(out: Path) -> None:
         raise OptionError("out", f"out {out}: folder {out.parent} does not exist")
 
 
-def _describe_images(files: List[Path], opt: VocabularyOptions, dev, bar) -> List[Any]:
+def _describe_images(files: List[Path], opt: VocabularyOptions, dev, bar, beat=None) -> List[Any]:
     """BRIEF descriptors of every image: per image a ``(K_i, 4)`` int64 tensor on ``dev`` (valid
-    descriptors only); images of one size go through ``fast``/``brief`` ``opt.chunk`` at a time."""
+    descriptors only); images of one size go through ``fast``/``brief`` ``opt.chunk`` at a time
+    (every image's descriptors are its own: the chunks do not change them). ``beat``: called per
+    chunk (a sharded run's heartbeat)."""
     import numpy as np
     import torch
 
@@ -119,6 +121,8 @@ def _describe_images(files: List[Path], opt: VocabularyOptions, dev, bar) -> Lis
             descs.append(d[b][valid[b]])
         if bar is not None:
             bar.update(len(batch))
+        if beat is not None:
+            beat()
 
     pending: List[np.ndarray] = []
     for f in files:
