@@ -24,7 +24,7 @@ test: $(STAMP)
 	$(VPY) -m pytest -q
 
 bench: $(STAMP)
-	$(VPY) benchmarks/bench_pipeline.py --compile
+	$(VPY) benchmarks/bench_pipeline.py --compile --capturable
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -62,7 +62,7 @@ def _stream_frames(frames, B, n_steps):
 
 
 def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_meas: int, skip_cv: bool,
-            repeats: int = 3) -> dict:
+            repeats: int = 3, capturable: bool | None = None) -> dict:
     """One configuration, in this process. Returns a dict of measurements.
 
     Each side is timed over ``repeats`` windows of ``n_meas`` consecutive steps (an even count: VINS
@@ -87,7 +87,7 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     stamps = [1403715273.0 + 0.05 * k for k in range(n_total)]
     windows = [range(n_warm + r * n_meas, n_warm + (r + 1) * n_meas) for r in range(repeats)]
     dev = torch.device(device)
-    tr = tf.FeatureTracker(cfg, num_streams=B, device=dev)
+    tr = tf.FeatureTracker(cfg, num_streams=B, device=dev, capturable=capturable)
     if compiled:
         tr.compile()
     batches = [torch.from_numpy(np.stack(row))[:, None].to(dev) for row in steps]
@@ -97,6 +97,7 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
     for k in range(n_warm):
         tr.track(batches[k], [stamps[k]] * B)
     sync()
+    warm_state = tr.state  # a value: the counted steps below replay the first window from here
     orcs = None
     if not skip_cv:
         cfg_cv = {
@@ -126,9 +127,10 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
                 for b in range(B):
                     orcs[b].process(steps[k][b], stamps[k])
             t_cv = min(t_cv, time.perf_counter() - t0)
+    counts = launch_counts(tr, warm_state, batches[n_warm:n_warm + n_meas], stamps[n_warm:n_warm + n_meas], B)
     res = {
-        "B": B, "threads": threads, "device": device, "compiled": compiled, "steps_per_window": n_meas,
-        "windows": repeats,
+        "B": B, "threads": threads, "device": device, "compiled": compiled, "capturable": tr.capturable,
+        "steps_per_window": n_meas, "windows": repeats, **counts,
         "torch_ms_per_stream_frame": t_torch / (n_meas * B) * 1e3,
         "torch_ms_per_step": t_torch / n_meas * 1e3,
         "stages_ms_per_stream_frame": stages,
@@ -140,6 +142,25 @@ def run_one(B: int, threads: int, device: str, compiled: bool, n_warm: int, n_me
         res["opencv_ms_per_stream_frame"] = t_cv / (n_meas * B) * 1e3
         res["ratio"] = res["torch_ms_per_stream_frame"] / res["opencv_ms_per_stream_frame"]
     return res
+
+
+def launch_counts(tr, state, batches, stamps, B) -> dict:
+    """Kernels, views and host syncs per step (means over ``len(batches)`` steps, an even count: a
+    published and an unpublished step each), counted with ``torch_frontend.testing.dispatch_count``
+    from ``state`` with the pure step (what the same ops launch and wait for on CUDA), including the
+    door's checks and the upload of the step's own images and timestamps. Not counted for compiled rows (the compiled
+    graph does not dispatch op by op)."""
+    from torch_frontend.testing.dispatch_count import OpCounter
+
+    if tr._compiled is not None:
+        return {}
+    totals = dict(kernels=0, views=0, syncs=0)
+    for img, t in zip(batches, stamps):
+        with OpCounter() as c:
+            state, _ = tr.step(state, img, [t] * B)
+        for k in totals:
+            totals[k] += getattr(c, k)
+    return {f"{k}_per_step": v / len(batches) for k, v in totals.items()}
 
 
 def profile(B: int, n_meas: int = 6) -> str:
@@ -224,8 +245,9 @@ def markdown(rows, machine: str) -> str:
         " sides' windows alternating (peak RSS includes the OpenCV trackers).",
         "",
         "| device | B | threads | mode | torch ms/stream-frame | OpenCV ms/stream-frame | ratio | target | peak RSS MiB |"
-        " stages ms/stream-frame (clahe, pyramid, lk, ransac, mask, detection, undistort) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        " stages ms/stream-frame (clahe, pyramid, lk, ransac, mask, detection, undistort) |"
+        " kernels / views / syncs per step |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
@@ -237,11 +259,26 @@ def markdown(rows, machine: str) -> str:
                            ("clahe", "pyramid", "lk", "ransac", "mask", "detection", "undistort"))
         cv = f"{r['opencv_ms_per_stream_frame']:.2f}" if "opencv_ms_per_stream_frame" in r else "-"
         ratio = f"{r['ratio']:.2f}" if "ratio" in r else "-"
+        counts = (f"{r['kernels_per_step']:.0f} / {r['views_per_step']:.0f} / {r['syncs_per_step']:.1f}"
+                  if "kernels_per_step" in r else "-")
         lines.append(
-            f"| {r['device']} | {r['B']} | {r['threads']} | {'compile' if r['compiled'] else 'eager'} | "
+            f"| {r['device']} | {r['B']} | {r['threads']} | {_mode(r)} | "
             f"{r['torch_ms_per_stream_frame']:.2f} | {cv} | {ratio} | {_target(r)} | {r['peak_rss_mib']:.0f} | {stages} |"
+            f" {counts} |"
         )
+    lines += ["", "Mode: eager = the default path of the device (CPU: tuned, early exits; CUDA: capturable),"
+              " capturable = `capturable=True` (shape-static, no host syncs: the CUDA path, here measured on the"
+              " CPU), compile = `FeatureTracker.compile()`. Kernels / views / syncs: aten ops per step counted with"
+              " `torch_frontend.testing.dispatch_count.OpCounter` (the launches and host waits the same ops cost on"
+              " a GPU), from the input checks on: the step's two uploads (images, timestamps) are in the sync count."]
     return "\n".join(lines) + "\n"
+
+
+def _mode(r) -> str:
+    m = "compile" if r["compiled"] else "eager"
+    if r.get("capturable") and r["device"] == "cpu":
+        m += ", capturable"
+    return m
 
 
 def plot(rows, path: Path) -> None:
@@ -297,11 +334,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="B 1 and 4, 1 thread only")
     ap.add_argument("--compile", action="store_true", help="add torch.compile rows")
+    ap.add_argument("--capturable", action="store_true",
+                    help="add CPU rows with capturable=True (the CUDA code path's launch and sync counts)")
     ap.add_argument("--batches", type=int, nargs="*", default=None)
     ap.add_argument("--threads", type=int, nargs="*", default=None)
     ap.add_argument("--device", nargs="*", default=None)
     ap.add_argument("--profile", type=int, default=None, metavar="B",
                     help="profile the tracker at B streams (1 thread) instead of the table")
+    ap.add_argument("--out-name", default="pipeline",
+                    help="results/<name>.json and .md (default pipeline; benchmarks/gpu.sh: pipeline_cuda)")
     ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)  # internal: run one config
     args = ap.parse_args(argv)
     if args.profile is not None:
@@ -328,18 +369,23 @@ def main(argv=None) -> int:
     batches = args.batches or ([1, 4] if args.quick else [1, 4, 16, 64])
     threads = args.threads or ([1] if args.quick else [1, 2])
     devices = args.device or (["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
-    modes = [False, True] if args.compile else [False]
+    modes = [(False, None)] + ([(True, None)] if args.compile else []) + ([(False, True)] if args.capturable else [])
     rows = []
     for dev in devices:
         for th in threads if dev == "cpu" else [threads[0]]:
-            for compiled in modes:
-                # compile rows: compiling costs ~1 min per process on CPU, so only threads 1 and two sizes
-                if compiled and (th != threads[0]):
+            for compiled, capturable in modes:
+                # compile rows: compiling costs ~1 min per process on CPU, so only threads 1 and two sizes;
+                # capturable rows are for their counts (and the CPU time of the CUDA path): 1 thread
+                if (compiled or capturable) and (th != threads[0]):
                     continue
-                for B in ([b for b in batches if b in (1, 16)] or batches[:1]) if compiled else batches:
+                if capturable and dev != "cpu":
+                    continue  # the device's default already is the capturable path
+                # compile and capturable rows at two sizes (capturable: the launch counts do not depend on B)
+                for B in ([b for b in batches if b in (1, 16)] or batches[:1]) if compiled or capturable else batches:
                     n_meas = max(2, min(8, 64 // B)) if dev == "cpu" else 8  # even: see run_one
                     spec = dict(B=B, threads=th, device=dev, compiled=compiled, n_warm=4, n_meas=n_meas,
-                                skip_cv=(dev != "cpu" and B not in (1, 64)), repeats=5 if B <= 16 else 3)
+                                skip_cv=(dev != "cpu" and B not in (1, 64)) or bool(capturable),
+                                repeats=5 if B <= 16 else 3, capturable=capturable)
                     t0 = time.time()
                     out = subprocess.run([sys.executable, __file__, "--one", json.dumps(spec)],
                                          capture_output=True, text=True, timeout=900)
@@ -350,7 +396,8 @@ def main(argv=None) -> int:
                     else:
                         res = json.loads(line[-1][7:])
                     rows.append(res)
-                    print(f"  {dev} B={B} threads={th} {'compile' if compiled else 'eager'}: "
+                    print(f"  {dev} B={B} threads={th} {'compile' if compiled else 'eager'}"
+                          f"{', capturable' if capturable else ''}: "
                           + (res.get("error") or f"{res['torch_ms_per_stream_frame']:.2f} ms/stream-frame"
                              + (f", OpenCV {res['opencv_ms_per_stream_frame']:.2f}, ratio {res['ratio']:.2f}"
                                 if "ratio" in res else ""))
@@ -363,9 +410,9 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(HERE))
     from _common import write_atomic, write_json_atomic
 
-    write_json_atomic(RESULTS / "pipeline.json", {"machine": machine, "targets": TARGETS, "rows": rows})
-    write_atomic(RESULTS / "pipeline.md", md.encode())
-    plot(rows, RESULTS / "pipeline_scaling.png")
+    write_json_atomic(RESULTS / f"{args.out_name}.json", {"machine": machine, "targets": TARGETS, "rows": rows})
+    write_atomic(RESULTS / f"{args.out_name}.md", md.encode())
+    plot(rows, RESULTS / f"{args.out_name}_scaling.png")
     return 0
 
 

@@ -21,8 +21,8 @@ PACKAGE = "torch_frontend"
 # above. Entries are modules or packages of torch_frontend (a package holds its submodules); "" is
 # the package's own __init__ (the lazy facade over everything).
 LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
-    # exceptions, the lazy-name helper, atomic file writes: no torch_frontend imports at all
-    ("base", ("errors", "_lazy", "_atomic")),
+    # exceptions, the lazy-name helper, atomic file writes, compiler marks: no torch_frontend imports
+    ("base", ("errors", "_lazy", "_atomic", "_compiler")),
     # the OpenCV FileStorage reader (numpy + yaml), argument checks, rotations/quaternions
     ("readers and maths", ("opencv_yaml", "_checks", "geometry")),
     # camodocal camera models; trajectory files, alignment and ATE
@@ -41,8 +41,10 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("references", ("testing",)),
     # run outputs and drawing
     ("writers", ("outputs", "viz")),
+    # many processes: sharding, the ranks' coordination, k-medians over ranks (torch.distributed)
+    ("distributed", ("distributed",)),
     # what users run: the pipelines, the CLI, the package's lazy facade
-    ("what users run", ("pipelines", "cli", "")),
+    ("what users run", ("pipelines", "cli", "__main__", "")),
 ]
 
 

@@ -65,7 +65,9 @@ def bit_identical(ours, st, ref, st_ref):
     return float(np.mean((st == st_ref) & (~both | same_pos)))
 
 
-def fidelity(name, ours, st, ref, st_ref):
+def fidelity(name, ours, st, ref, st_ref, min_bits=None):
+    """The distance bars; with ``min_bits`` also a floor on the bit-identical fraction (uint8 images,
+    fixed point, float32 points: a lost fixed-point emulation leaves ~8 % there)."""
     agree = float(np.mean(st == st_ref))
     both = st & st_ref
     d = np.linalg.norm(ours - ref, axis=1)[both]
@@ -75,6 +77,8 @@ def fidelity(name, ours, st, ref, st_ref):
           f"bit-identical={bit_identical(ours, st, ref, st_ref):.4f}")
     assert agree >= 0.99, (name, agree)
     assert med <= 0.02 and p95 <= 0.1, (name, med, p95)
+    if min_bits is not None:
+        assert bit_identical(ours, st, ref, st_ref) >= min_bits, (name, min_bits)
     return agree, med, p95
 
 
@@ -133,19 +137,27 @@ def cam1():
 # fraction of points bit-identical to cv2 on the EuRoC temporal pairs (the tracker's case): 99.2 %
 # measured with the fixed-point emulation, 7.9 % without it (the other bars pass either way)
 BIT_IDENTICAL_BAR = 0.99
+# larger motions need more iterations and the float summation order of ``b`` then leaves fewer
+# points bit-identical; floors ~7 points below the measured fractions (stereo 0.76-0.79, with the
+# backward check 0.88-0.90; warps 0.70-0.88; Motorcycle 0.60 / 0.74; initial flow 0.905), far above
+# the ~8 % of float interpolation: each of these tests also catches a lost fixed-point emulation
+STEREO_BITS, STEREO_FB_BITS, WARP_BITS = 0.7, 0.8, 0.62
+MOTORCYCLE_BITS, MOTORCYCLE_FB_BITS, INITIAL_FLOW_BITS = 0.53, 0.67, 0.83
 
 
-@pytest.mark.parametrize("fixed_point", [None, False], ids=["fixed_point", "float_guard"])
-def test_euroc_temporal_vs_cv2_batched(cam0, fixed_point):
+@pytest.mark.parametrize("fixed_point,early_exit", [(None, True), (False, True), (None, False), (False, False)],
+                         ids=["fixed_point", "float_guard", "static", "static_float_guard"])
+def test_euroc_temporal_vs_cv2_batched(cam0, fixed_point, early_exit):
     """4 consecutive-frame pairs (one with a 3-frame gap) as B=4 streams in one call. At least 99 %
-    of the points are bit-identical to OpenCV's; the ``float_guard`` case shows that the bar fails
-    when the fixed-point emulation is off (float interpolation still passes the distance bars)."""
+    of the points are bit-identical to OpenCV's, on the tuned (early-exit) and on the static
+    (capturable) path; the ``float_guard`` cases show that the bar fails when the fixed-point
+    emulation is off (float interpolation still passes the distance bars)."""
     pairs = [(0, 1), (7, 8), (15, 16), (20, 23)]
     pts = [gftt(cam0[i]) for i, _ in pairs]
     n = min(len(p) for p in pts)
     pts = [p[:n] for p in pts]
     out, st = track_lk(t_img(*[cam0[i] for i, _ in pairs]), t_img(*[cam0[j] for _, j in pairs]), t_pts(*pts),
-                       fixed_point=fixed_point)
+                       fixed_point=fixed_point, early_exit=early_exit)
     assert out.shape == (4, n, 2) and st.shape == (4, n) and st.dtype == torch.bool
     allo, alls, allr, allsr = [], [], [], []
     for b, (i, j) in enumerate(pairs):
@@ -171,9 +183,9 @@ def test_euroc_stereo_vs_cv2(cam0, cam1):
     out_fb, st_fb = track_lk(L, R, P, forward_backward=True, fb_max_level=3, fb_use_initial_flow=False)
     for i in range(2):
         ref, st_ref = cv_lk(cam0[i], cam1[i], pts[i])
-        fidelity(f"euroc stereo {i}", out[i].numpy(), st[i].numpy(), ref, st_ref)
+        fidelity(f"euroc stereo {i}", out[i].numpy(), st[i].numpy(), ref, st_ref, STEREO_BITS)
         ref, ok_ref = cv_lk_fb(cam0[i], cam1[i], pts[i], 3, 3, use_initial=False)
-        fidelity(f"euroc stereo {i} FB", out_fb[i].numpy(), st_fb[i].numpy(), ref, ok_ref)
+        fidelity(f"euroc stereo {i} FB", out_fb[i].numpy(), st_fb[i].numpy(), ref, ok_ref, STEREO_FB_BITS)
 
 
 # mild warps: shifts up to 30 px, rotation, scale; "strong" ones only reported (+ fidelity/EPE ratio)
@@ -211,10 +223,10 @@ def test_homography_warps_vs_cv2_and_gt(cam0):
     fv_fb = []
     for b, name in enumerate(cases):
         ref, st_ref = cv_lk(img, warped[b], p)
-        fidelity(f"warp {name}", out[b].numpy(), st[b].numpy(), ref, st_ref)
+        fidelity(f"warp {name}", out[b].numpy(), st[b].numpy(), ref, st_ref, WARP_BITS)
         vs_gt(f"warp {name}", out[b].numpy(), st[b].numpy(), ref, st_ref, gts[b])
         ref, ok_ref = cv_lk_fb(img, warped[b], p, 3, 1, use_initial=True)
-        fidelity(f"warp {name} FB", out_fb[b].numpy(), st_fb[b].numpy(), ref, ok_ref)
+        fidelity(f"warp {name} FB", out_fb[b].numpy(), st_fb[b].numpy(), ref, ok_ref, WARP_BITS)
         _, _, fv, _ = vs_gt(f"warp {name} FB", out_fb[b].numpy(), st_fb[b].numpy(), ref, ok_ref, gts[b])
         if name in WARPS:
             fv_fb.append(fv)
@@ -240,12 +252,12 @@ def test_motorcycle_vs_gt():
     gt[:, 0] -= d
     ref, st_ref = cv_lk(L, R, p)
     out, st = track_lk(t_img(L), t_img(R), t_pts(p))
-    fidelity("motorcycle", out[0].numpy(), st[0].numpy(), ref, st_ref)
+    fidelity("motorcycle", out[0].numpy(), st[0].numpy(), ref, st_ref, MOTORCYCLE_BITS)
     vs_gt("motorcycle", out[0].numpy(), st[0].numpy(), ref, st_ref, gt)
     ref, ok_ref = cv_lk_fb(L, R, p, 3, 3, use_initial=False)
     out, st = track_lk(t_img(L), t_img(R), t_pts(p), forward_backward=True, fb_max_level=3,
                        fb_use_initial_flow=False)
-    fidelity("motorcycle FB", out[0].numpy(), st[0].numpy(), ref, ok_ref)
+    fidelity("motorcycle FB", out[0].numpy(), st[0].numpy(), ref, ok_ref, MOTORCYCLE_FB_BITS)
     _, _, fv, fv_cv = vs_gt("motorcycle FB", out[0].numpy(), st[0].numpy(), ref, ok_ref, gt)
     assert fv <= fv_cv + 0.01
 
@@ -274,7 +286,7 @@ def test_initial_flow_and_small_image_cap(cam0):
     guess = p + np.float32([3.0, -2.0])
     ref, st_ref = cv_lk(a, b, p, max_level=1, init=guess)
     out, st = track_lk(t_img(a), t_img(b), t_pts(p), max_level=1, init_pts=t_pts(guess))
-    fidelity("initial flow", out[0].numpy(), st[0].numpy(), ref, st_ref)
+    fidelity("initial flow", out[0].numpy(), st[0].numpy(), ref, st_ref, INITIAL_FLOW_BITS)
     # 60x80 crop with win 21: OpenCV stops the pyramid at level 1 (30 px) < ... (15 px <= 21)
     ca, cb = np.ascontiguousarray(a[200:260, 300:380]), np.ascontiguousarray(b[200:260, 300:380])
     pc = gftt(ca, 30, 5)
@@ -345,7 +357,8 @@ def test_non_square_window_and_empty(cam0):
     out, st = track_lk(t_img(a), t_img(b), t_pts(p), win_size=(15, 9), max_level=2)
     ref, st_ref, _ = cv2.calcOpticalFlowPyrLK(a, b, p.reshape(-1, 1, 2), None, winSize=(15, 9), maxLevel=2,
                                               criteria=CRIT)
-    fidelity("win 15x9", out[0].numpy(), st[0].numpy(), ref.reshape(-1, 2), st_ref.ravel().astype(bool))
+    fidelity("win 15x9", out[0].numpy(), st[0].numpy(), ref.reshape(-1, 2), st_ref.ravel().astype(bool),
+             BIT_IDENTICAL_BAR)
     out, st = track_lk(t_img(a, a), t_img(b, b), torch.zeros(2, 0, 2), forward_backward=True)
     assert out.shape == (2, 0, 2) and st.shape == (2, 0)
 

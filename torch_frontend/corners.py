@@ -28,6 +28,13 @@ maxima, one ``nonzero``, two stable sorts), and image-sized passes run on groups
 about one 752x480 frame (``_tuning.Strategy.corner_streams``), so temporaries stay cache-sized;
 see ``benchmarks/bench_image.py``.
 
+Capturable path (``_good_features_impl(..., capturable=True)``, for CUDA graphs / a whole-step
+compile): no host syncs and a fixed op sequence. The candidates of each stream are ranked by one
+top-k of a unique integer key (OpenCV's order and tie order) and a fixed :class:`GreedyBudget`
+replaces the data-dependent chunks and rounds; an ``overflow (B,)`` flag says where the budget
+was too small for OpenCV's exact answer, and wherever it is False the corners are the default
+path's, bit for bit. The budget is sized from measured maxima (:data:`GFTT_BUDGET`).
+
 Layers: the public functions check and normalise their inputs and call the ``_impl`` layer
 (:func:`_response_impl`, :func:`_good_features_impl`), which a pipeline that validated once calls
 directly.
@@ -35,8 +42,9 @@ directly.
 
 from __future__ import annotations
 
+import functools
 import math
-from typing import Tuple, Union
+from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -62,13 +70,19 @@ def check_block(height: int, width: int, block_size: int) -> None:
         raise ValueError(f"img: block_size {block_size} too large for image {(H, W)}")
 
 
-def _covariance_sums(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+def _covariance_sums(img: torch.Tensor, block_size: int,
+                     stacked: bool = False) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
     """Un-scaled Sobel-3 products box-summed over ``block_size``, and OpenCV's derivative scale.
 
     ``img``: (B, 1, H, W) float (sizes checked by :func:`check_block`). Returns (Sxx, Sxy, Syy)
     each (B, H, W), and ``scale``. The in-place accumulations act on fresh tensors that autograd
-    does not save, so this one form is also differentiable.
+    does not save, so this one form is also differentiable. ``stacked``: the three products are
+    box-summed as one (B, 3, H, W) tensor (the same operations per element, so the same values,
+    in a third of the launches: the capturable path; on the CPU the per-product passes keep the
+    buffers cache- and mmap-friendly).
     """
+    if stacked:
+        return _covariance_sums_stacked(img, block_size)
     H, W = img.shape[-2:]
     lo = block_size // 2
     hi = block_size - 1 - lo
@@ -105,6 +119,31 @@ def _covariance_sums(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, 
     del dx, dy
     scale = 1.0 / (4.0 * block_size * 255.0)  # 2**(aperture-1) * block * 255, aperture 3
     return sums[0], sums[1], sums[2], scale
+
+
+def _covariance_sums_stacked(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """:func:`_covariance_sums` with the three products in one tensor (see there)."""
+    H, W = img.shape[-2:]
+    lo = block_size // 2
+    hi = block_size - 1 - lo
+    xp = F.pad(img, (1, 1, 1, 1), mode="reflect")
+    hx = xp[..., :, 2:] - xp[..., :, :-2]
+    hs = torch.add(xp[..., :, :-2], xp[..., :, 1:-1], alpha=2.0)
+    hs += xp[..., :, 2:]
+    dx = torch.add(hx[..., :-2, :], hx[..., 1:-1, :], alpha=2.0)
+    dx += hx[..., 2:, :]
+    dy = hs[..., 2:, :] - hs[..., :-2, :]
+    prod = torch.cat((dx, dx, dy), 1) * torch.cat((dx, dy, dy), 1)  # (B, 3, H, W): xx, xy, yy
+    if block_size > 1:
+        pp = F.pad(prod, (lo, hi, lo, hi), mode="reflect")
+        rows = pp[:, :, 0:H, :].clone()
+        for i in range(1, block_size):
+            rows += pp[:, :, i:i + H, :]
+        prod = rows[..., 0:W].clone()
+        for i in range(1, block_size):
+            prod += rows[..., i:i + W]
+    scale = 1.0 / (4.0 * block_size * 255.0)
+    return prod[:, 0], prod[:, 1], prod[:, 2], scale
 
 
 def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
@@ -165,8 +204,8 @@ def _response_impl(img: torch.Tensor, use_harris: bool, block_size: int, k: floa
     return out
 
 
-def _min_eigen_impl(x: torch.Tensor, block_size: int) -> torch.Tensor:
-    sxx, sxy, syy, s = _covariance_sums(x, block_size)
+def _min_eigen_impl(x: torch.Tensor, block_size: int, stacked: bool = False) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size, stacked)
     # lambda_min = ((Sxx + Syy) - sqrt((Sxx - Syy)² + 4 Sxy²)) / 2 on the un-scaled sums, times
     # scale² once (OpenCV scales first; the difference is ~1e-7 relative, and equal sums still
     # give exactly equal responses, which keeps OpenCV's ties). The in-place steps act on fresh
@@ -192,8 +231,8 @@ def harris_response(img: torch.Tensor, block_size: int = 3, k: float = 0.04) -> 
     return _response_impl(x, True, int(block_size), float(k))
 
 
-def _harris_impl(x: torch.Tensor, block_size: int, k: float) -> torch.Tensor:
-    sxx, sxy, syy, s = _covariance_sums(x, block_size)
+def _harris_impl(x: torch.Tensor, block_size: int, k: float, stacked: bool = False) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size, stacked)
     s2 = s * s
     a = sxx * s2
     b = sxy * s2
@@ -285,7 +324,10 @@ def _good_features_impl(
     block_size: int,
     k: float,
     capacity: int | None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+    *,
+    capturable: bool = False,
+    budget: Optional[GreedyBudget] = None,
+) -> tuple:
     """:func:`good_features_to_track` without input checks.
 
     Args:
@@ -294,13 +336,29 @@ def _good_features_impl(
         quality_level, min_distance: as OpenCV (``min_distance`` in pixels).
         mask: ``(B, H, W)`` bool (True = allowed) or None (everywhere).
         use_harris, block_size, k: the response (Harris with ``k``, else the min eigenvalue).
-        capacity: output size K, or None for ``max(max_corners)`` (a host sync).
+        capacity: output size K, or None for ``max(max_corners)`` (a host sync; not with
+            ``capturable``).
+        capturable: False: the exact, host-driven selection (all candidates, rounds until
+            resolved, CPU stream groups). True: shape-static and free of host syncs, with a kernel
+            count independent of B and of the data: the ``budget.block`` best candidates per
+            stream and a fixed number of greedy rounds (:func:`_select_corners_static`).
+        budget: the fixed work of the capturable path (default :data:`GFTT_BUDGET`).
 
     Returns:
-        ``pts (B, K, 2)`` float, ``valid (B, K)`` bool, as :func:`good_features_to_track`.
+        ``pts (B, K, 2)`` float, ``valid (B, K)`` bool, as :func:`good_features_to_track`; with
+        ``capturable`` also ``overflow (B,)`` bool: True where the budget was too small for
+        OpenCV's exact answer (elsewhere the result equals the default path's).
     """
-    resp = _response_impl(img, use_harris, block_size, k)[:, 0].detach()
-    return _select_corners(resp, max_corners, quality_level, min_distance, mask, capacity)
+    if not capturable:
+        resp = _response_impl(img, use_harris, block_size, k)[:, 0].detach()
+        return _select_corners(resp, max_corners, quality_level, min_distance, mask, capacity)
+    if capacity is None:
+        raise ValueError("_good_features_impl: capturable=True needs an int capacity (the output size)")
+    x = _as_float(img)  # one pass over the batch (the CPU stream groups are host-side strategy)
+    resp = _harris_impl(x, block_size, k, True) if use_harris else _min_eigen_impl(x, block_size, True)
+    resp = resp[:, 0].detach()
+    return _select_corners_static(resp, max_corners, quality_level, min_distance, mask, int(capacity),
+                                  GFTT_BUDGET if budget is None else budget)
 
 
 def _gftt_from_response(
@@ -310,12 +368,22 @@ def _gftt_from_response(
     min_distance: float,
     mask: torch.Tensor | None,
     capacity: int | None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+    *,
+    capturable: bool = False,
+    budget: Optional[GreedyBudget] = None,
+) -> tuple:
     """GFTT selection on a response map ``resp`` (B, H, W) float, inputs as
-    :func:`good_features_to_track` (checked and normalised here)."""
+    :func:`good_features_to_track` (checked and normalised here); ``capturable`` and ``budget``
+    as :func:`_good_features_impl` (``capacity`` required then)."""
     B, H, W = resp.shape
-    return _select_corners(resp, _max_corners(max_corners, B, resp.device), float(quality_level),
-                           float(min_distance), _mask_batch(mask, B, H, W, resp.device),
+    mc = _max_corners(max_corners, B, resp.device)
+    m = _mask_batch(mask, B, H, W, resp.device)
+    if capturable:
+        if capacity is None:
+            raise ValueError("_gftt_from_response: capturable=True needs an int capacity")
+        return _select_corners_static(resp, mc, float(quality_level), float(min_distance), m, int(capacity),
+                                      GFTT_BUDGET if budget is None else budget)
+    return _select_corners(resp, mc, float(quality_level), float(min_distance), m,
                            None if capacity is None else int(capacity))
 
 
@@ -466,10 +534,9 @@ def _nms_candidates(t: torch.Tensor) -> torch.Tensor:
     c = cand.view(-1)[W + 1:N - W - 1]
     torch.eq(centre, d, out=c)
     c &= centre != 0
-    cand[:, 0, :] = False
-    cand[:, H - 1, :] = False
-    cand[:, :, 0] = False
-    cand[:, :, W - 1] = False
+    # fill_ on views, not ``cand[...] = False`` (a Python scalar is uploaded as a tensor first)
+    cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
+    cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
     return cand
 
 
@@ -569,3 +636,293 @@ def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, mi
             filled = min(int(count.max()), kcap)
         start = stop
     return accepted
+
+
+# ---------------------------------------------------------------------------------------------
+# The capturable selection (``capturable=True``): shape-static, no host syncs, and a kernel count
+# that depends on neither B nor the data. The same rules as :func:`_select_corners`; what the
+# default path decides on the host (how many candidates, chunks and rounds) is a fixed budget
+# here, and an ``overflow`` flag says where it was too small for OpenCV's exact answer.
+
+
+class GreedyBudget(NamedTuple):
+    """Fixed work of the capturable GFTT selection (per stream and call).
+
+    ``block``: candidates kept per stream, the best in OpenCV's order (one top-k). The greedy
+    minimum-distance pass runs in two stages: the ``first`` best candidates resolve among
+    themselves in ``rounds_first`` rounds on a dense ``first x first`` conflict matrix; the rest
+    of the block is tested against the corners accepted there, and its survivors (rank order
+    kept, at most ``survivors`` of them) resolve among themselves in ``rounds`` rounds. Memory
+    per stream ~``13 B x (first² + survivors²) + 9 B x block x max_corners``; kernels
+    ~``130 + 4 x (rounds_first + rounds)`` per call (response included), whatever B and the data.
+    """
+
+    block: int
+    first: int
+    rounds_first: int
+    survivors: int
+    rounds: int
+
+
+#: The tracker's budget: measured maxima with headroom. Measured through these kernels (1,800
+#: calls) on what the tracker sees: max_cnt 150, quality 0.01, min_dist 30 / 25 / 20; the calls of
+#: mono (CLAHE) and fusion (raw) trackers in steady state, with setMask's masks of the tracked
+#: features; and every frame as a first frame (no mask, 150 new corners; CLAHE and raw). Frames:
+#: EuRoC mini cam0 / cam1, V1_01 micro cam0 / cam1, the Middlebury pair, the synthetic flight.
+#:
+#: ==========================================================  =========  ======  ========
+#: quantity (max over the calls)                               EuRoC      all     budget
+#: ==========================================================  =========  ======  ========
+#: candidate rank OpenCV's answer reaches (150th corner, or    1,995      2,763   8,192
+#: every candidate where a stream runs out)
+#: rounds until every first-stage (1,024) candidate decided    13         13      24
+#: second-stage survivors up to the last kept corner           158        283     768
+#: rounds until every second-stage survivor decided            11         11      24
+#: ==========================================================  =========  ======  ========
+#:
+#: (the maxima: flight and Middlebury at min_dist 30; rounds: a tight distribution, mode 8.) The
+#: kernel count (~320 per call) depends on the rounds only; the bmm of a round reads
+#: ``4 B x (first² + survivors²)`` per stream.
+GFTT_BUDGET = GreedyBudget(block=8192, first=1024, rounds_first=24, survivors=768, rounds=24)
+
+_I64_MIN = -(1 << 63)
+
+
+@functools.lru_cache(maxsize=64)
+def _upper(n: int, device: torch.device) -> torch.Tensor:
+    """(n, n) bool, True on and above the diagonal: ``[j, i]`` with ``j <= i`` in rank (cached)."""
+    return torch.ones(n, n, dtype=torch.bool, device=device).triu()
+
+
+@functools.lru_cache(maxsize=64)
+def _pixel_table(height: int, width: int, cell: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Raster index -> ``(x, y)`` (``cell > 0``: ``(x, y, x // cell, y // cell)``): (H*W, 2 | 4)
+    integers, a cached constant (one gather replaces the div / mod / stack per call)."""
+    i = torch.arange(height * width, device=device)
+    cols = [i % width, torch.div(i, width, rounding_mode="floor")]
+    if cell > 0:
+        cols += [torch.div(cols[0], cell, rounding_mode="floor"), torch.div(cols[1], cell, rounding_mode="floor")]
+    return torch.stack(cols, -1).to(dtype)
+
+
+@functools.lru_cache(maxsize=64)
+def _iota(n: int, device: torch.device) -> torch.Tensor:
+    """``arange(n)`` int64 (cached constant)."""
+    return torch.arange(n, device=device)
+
+
+def _resolve_fixed(conf: torch.Tensor, und: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_resolve_rounds` with a fixed number of rounds (no host check), 4 kernels a round.
+
+    ``conf`` (B, C, C) bool, transposed conflicts *with the diagonal*: ``conf[b, j, i]`` iff
+    ``j <= i`` in rank and j excludes i (every candidate excludes itself). ``und`` (B, C) bool.
+    Returns ``accepted`` and ``undecided`` (B, C) bool after ``rounds`` rounds. Every decision
+    taken is the sequential greedy one (by induction on rank); all is decided iff ``undecided``
+    is empty, and above the first undecided candidate the result is exact.
+
+    One state ``s`` per candidate: 0 rejected, 1 undecided, A accepted (A a power of two > C).
+    ``c = s @ conf`` is ``s_i`` plus the higher conflicts' states: an undecided candidate has
+    ``c = 1`` when every higher conflict is rejected (accept: s = A), ``2 <= c <= C`` while one is
+    undecided (wait), ``c > A`` once one is accepted (reject: s = 0); an accepted one keeps ``c = A``
+    (its higher conflicts are all rejected). So ``s *= h(c)`` with ``h = A, 1, 0`` on
+    ``c <= 1.5 < c <= A + 0.5 < c``. Integers below 2**24: exact in float32 (TF32 too).
+    """
+    B, C = und.shape
+    A = 1 << max(1, C.bit_length())  # > C
+    dt = torch.float32 if (C + 1) * A < (1 << 24) else torch.float64
+    dev = und.device
+    bounds, table = _round_tables(A, dt, dev)
+    s = und.to(dt).unsqueeze(1)  # (B, 1, C)
+    conf = conf.to(dt)
+    with _no_autocast(dev):  # a lower-precision matmul would not keep the counts exact
+        for _ in range(rounds):
+            s.mul_(table[torch.bucketize(torch.bmm(s, conf), bounds)])
+    s = s.squeeze(1)
+    return s == A, s == 1
+
+
+@functools.lru_cache(maxsize=64)
+def _round_tables(A: int, dtype: torch.dtype, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_resolve_fixed`'s bucket bounds ``(1.5, A + 0.5)`` and factors ``(A, 1, 0)`` (cached)."""
+    i = torch.arange(3, device=device, dtype=dtype)  # built on the device (no upload, traceable)
+    return i[:2] * (A - 1) + 1.5, torch.where(i == 0, float(A), (i == 1).to(dtype))
+
+
+def _no_autocast(device: torch.device):
+    """A context without autocast for ``device`` when it is on (else a no-op)."""
+    import contextlib
+
+    if torch.is_autocast_enabled(device.type):
+        return torch.autocast(device.type, enabled=False)
+    return contextlib.nullcontext()
+
+
+def _conflicts(a: torch.Tensor, b: torch.Tensor, r2i: int, cells: bool) -> torch.Tensor:
+    """OpenCV's GFTT conflicts of ``a`` (B, Ca, 2 | 4) and ``b`` (B, Cb, 2 | 4) integer ``(x, y[, cell
+    x, cell y])`` -> (B, Ca, Cb) bool: ``d² < r2i`` (and, with ``cells``, neighbouring grid cells)."""
+    d = a[:, :, None, :2] - b[:, None, :, :2]
+    c = d.mul_(d).sum(-1, dtype=d.dtype) < r2i
+    if cells:
+        c &= (a[:, :, None, 2:] - b[:, None, :, 2:]).abs_().le_(1).all(-1)
+    return c
+
+
+def _greedy_static(xy: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float, kcap: int,
+                   budget: GreedyBudget) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_greedy_accept` with a fixed schedule (:class:`GreedyBudget`'s two stages).
+
+    ``xy`` (B, C, 2 | 4) integer positions (and grid cells) in rank order, ``cvalid`` (B, C),
+    ``mc`` (B,) corner budgets <= ``kcap``. Returns ``accepted`` (B, C) bool, ``undecided``
+    (B, C) bool (decisions the rounds left open) and ``n_surv`` (B,) (second-stage survivors,
+    of which only ``budget.survivors`` are resolved). Every decision taken is the sequential
+    greedy one; the result is OpenCV's above the first open decision.
+    """
+    B, C, nc = xy.shape
+    dev = xy.device
+    cells = nc == 4
+    r2i = int(math.ceil(min_distance * min_distance))  # integer d²: d² < r²  <=>  d² < ceil(r²)
+    far = _FAR[xy.dtype]
+    F1 = min(budget.first, C)
+
+    # stage 1: the best F1 candidates, dense
+    cur = xy[:, :F1]
+    und = cvalid[:, :F1] & (mc > 0)[:, None]
+    conf = _conflicts(cur, cur, r2i, cells)  # d = 0 on the diagonal: a conflict, as _resolve_fixed wants
+    conf &= _upper(F1, dev)
+    acc1, left1 = _resolve_fixed(conf, und, budget.rounds_first)
+    if F1 == C:
+        return acc1, left1, torch.zeros(B, dtype=torch.long, device=dev)
+
+    # the accepted corners in rank order in a (B, kcap + 1) buffer: free slots and the dump slot
+    # (beyond kcap, and the rejected) hold a point farther than min_distance from every pixel
+    slot = torch.cumsum(acc1, 1).sub_(1).clamp_max_(kcap)
+    slot = torch.where(acc1, slot, kcap)
+    buf = torch.full((B, kcap + 1, nc), far, dtype=xy.dtype, device=dev)
+    buf.scatter_(1, slot[..., None].expand(B, F1, nc), cur)
+    buf[:, kcap].fill_(far)
+    count = acc1.sum(1)
+
+    # stage 2: the rest, against stage 1's corners; the survivors compacted (rank order kept) into
+    # S slots plus a dump slot, resolved among themselves
+    rest = xy[:, F1:]
+    R = C - F1
+    S = min(budget.survivors, R)
+    und = cvalid[:, F1:] & (count < mc)[:, None]  # streams still collecting
+    und &= ~_conflicts(rest, buf, r2i, cells).any(-1)
+    pos = torch.cumsum(und, 1)  # 1-based survivor index
+    slot = torch.where(und, (pos - 1).clamp_max_(S), S)
+    sur = torch.full((B, S + 1, nc), far, dtype=xy.dtype, device=dev)
+    sur.scatter_(1, slot[..., None].expand(B, R, nc), rest)
+    sv = torch.zeros(B, S + 1, dtype=torch.bool, device=dev)
+    sv.scatter_(1, slot, und)
+    sv[:, S].fill_(False)  # the dump slot is never a candidate
+    conf = _conflicts(sur, sur, r2i, cells)
+    conf &= _upper(S + 1, dev)
+    acc2, left2 = _resolve_fixed(conf, sv, budget.rounds)
+    accepted = torch.cat((acc1, torch.gather(acc2, 1, slot)), 1)
+    undecided = torch.cat((left1, torch.gather(left2, 1, slot)), 1)
+    return accepted, undecided, pos[:, -1]
+
+
+def _select_corners_static(
+    resp: torch.Tensor,
+    mc: torch.Tensor,
+    quality_level: float,
+    min_distance: float,
+    m: torch.Tensor | None,
+    K: int,
+    budget: GreedyBudget,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_select_corners` with fixed work (the ``capturable`` path), no input checks.
+
+    The candidates of each stream are ranked by one top-k of a unique integer key (response
+    bits, then raster index: OpenCV's order and tie order) and the best ``budget.block`` enter
+    :func:`_greedy_static`. Returns ``pts (B, K, 2)``, ``valid (B, K)`` as :func:`_select_corners`
+    and ``overflow (B,)`` bool: True where OpenCV's answer needs a candidate beyond the block
+    (fewer than ``mc`` corners accepted and more candidates than the block holds) or a decision
+    the rounds left open above the ``mc``-th accepted corner. Where False, the result equals
+    :func:`_select_corners`'s exactly.
+    """
+    B, H, W = resp.shape
+    dev = resp.device
+    HW = H * W
+    if K <= 0 or B == 0 or HW == 0:
+        return (torch.zeros(B, max(K, 0), 2, dtype=resp.dtype, device=dev),
+                torch.zeros(B, max(K, 0), dtype=torch.bool, device=dev), torch.zeros(B, dtype=torch.bool, device=dev))
+    mc = mc.clamp_max(K)
+    Cb = min(budget.block, HW)
+
+    if m is None:
+        max_val = resp.flatten(1).amax(1)
+    else:
+        max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
+    max_val = torch.nan_to_num(max_val, nan=0.0, posinf=0.0, neginf=0.0)  # == where(isfinite, ., 0)
+    thr = (max_val.double() * float(quality_level)).to(resp.dtype)
+    t = torch.where(resp > thr[:, None, None], resp, 0.0)
+    cand = _nms_candidates(t)
+    if m is not None:
+        cand &= m
+    cand = cand.view(B, HW)
+    n_cand = cand.sum(1)
+
+    ib = max(1, (HW - 1).bit_length())  # bits of a raster index
+    if resp.dtype == torch.float32 and ib <= 31:
+        # unique int64 key, larger = earlier in OpenCV's order: float32 bits made order-preserving
+        # as signed ints (negative values: flip the magnitude bits), then the raster index (ties:
+        # later raster position first)
+        bits = resp.reshape(B, HW).view(torch.int32).to(torch.int64)
+        bits ^= (bits >> 31) & 0x7FFFFFFF
+        key = torch.where(cand, (bits << ib) + _iota(HW, dev), _I64_MIN)
+        top = torch.topk(key, Cb, dim=1)
+        idx, cvalid = top.indices, top.values != _I64_MIN
+    else:
+        # general dtype: a stable descending sort of the reversed raster order (ties: later first)
+        vals = torch.where(cand, resp.reshape(B, HW), float("-inf")).flip(1)
+        srt = torch.sort(vals, dim=1, descending=True, stable=True)
+        idx = (HW - 1) - srt.indices[:, :Cb]
+        cvalid = srt.values[:, :Cb] != float("-inf")
+
+    if min_distance < 1:  # OpenCV: no distance test, the first max_corners candidates
+        xy = _pixel_table(H, W, 0, torch.int32, dev).index_select(0, idx.reshape(-1)).view(B, Cb, 2)
+        accepted, undecided = cvalid, None
+    else:
+        cell = int(round(min_distance))  # cvRound (half to even)
+        cells = cell < min_distance  # OpenCV's 3x3 cell neighbourhood matters only then
+        # int32 coordinates while d² (also to the far placeholder) stays below 2**31
+        cdt = torch.int32 if max(H, W) <= _I32_SPAN and min_distance < -_FAR[torch.int32] else torch.int64
+        xy = _pixel_table(H, W, cell if cells else 0, cdt, dev).index_select(0, idx.reshape(-1))
+        xy = xy.view(B, Cb, -1)
+        accepted, undecided, n_surv = _greedy_static(xy, cvalid, mc, min_distance, K, budget)
+
+    cum = torch.cumsum(accepted, 1)  # (B, Cb) int64: accepted up to and including each rank
+    n_acc = cum[:, -1]
+    # candidates that were never looked at (beyond the block, or second-stage survivors beyond
+    # their slots: all ranked below every resolved one) matter iff fewer than mc corners were found
+    short = n_cand > Cb
+    if undecided is not None:
+        short |= n_surv > min(budget.survivors, max(Cb - budget.first, 0))
+    overflow = short & (n_acc < mc)
+    if undecided is not None:
+        # the first open decision matters iff fewer than mc corners were accepted above it
+        overflow |= (undecided & (cum - accepted.long() < mc[:, None])).any(1)
+    keep = accepted & (cum <= mc[:, None])
+    # compact into (B, K): kept corners at b * K + rank, the rest into one dump slot
+    slot = torch.where(keep, cum + _stream_offsets(B, K, dev), B * K)
+    out = torch.zeros(B * K + 1, 2, dtype=resp.dtype, device=dev)
+    out.index_put_((slot.view(-1),), xy[..., :2].reshape(-1, 2).to(resp.dtype))
+    n = torch.minimum(n_acc, mc)
+    valid = _iota(K, dev) < n[:, None]
+    return out[:B * K].view(B, K, 2), valid, overflow
+
+
+@functools.lru_cache(maxsize=64)
+def _stream_offsets(B: int, K: int, device: torch.device) -> torch.Tensor:
+    """``b * K - 1`` per stream, (B, 1) int64 (cached constant): flat slot of rank ``cum - 1``."""
+    return (torch.arange(B, device=device) * K - 1)[:, None]
+
+
+# The far placeholder of the accepted-corner buffer, per coordinate dtype: farther than
+# min_distance from every pixel (coordinates >= 0, min_distance < |far|). int32 coordinates up to
+# _I32_SPAN keep every d² (to the placeholder too) below 2**31: 2 * (2**14 + 2**13)² < 2**31.
+_FAR = {torch.int32: -(1 << 13), torch.int64: -(1 << 28)}
+_I32_SPAN = 1 << 14

@@ -83,7 +83,7 @@ def check_grid(height: int, width: int, gx: int, gy: int) -> None:
         raise ConfigError(f"image {width}x{height} too small for CLAHE padding with grid {gx}x{gy}")
 
 
-def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
+def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, capturable: bool = False) -> torch.Tensor:
     """CLAHE of ``src`` ``(B, H, W)`` uint8, contiguous -> ``(B, H, W)`` uint8, no input checks.
 
     ``clip_limit`` as OpenCV (``<= 0``: no clipping); ``gx, gy`` tiles along x / y (>= 1, the image
@@ -91,7 +91,12 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch
 
     On the CPU the per-pixel passes run on blocks of rows (``_tuning.Strategy.clahe_rows``): the
     float temporaries then stay in cache and below glibc's mmap threshold. Elsewhere: one block.
+    ``capturable``: one block on every device, histograms by ``index_add_`` into a buffer of known
+    size (no ``bincount``: its output size is read back on CUDA), a kernel count independent of B;
+    the output is the same, bit for bit (:func:`_clahe_static`).
     """
+    if capturable:
+        return _clahe_static(src, clip_limit, gx, gy)
     B, H, W = src.shape
     dev = src.device
     rows = _tuning.for_device(dev).clahe_rows
@@ -176,6 +181,54 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch
     return out.view(B, H, W)
 
 
+def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
+    """:func:`_clahe_impl` in one pass with a fixed op sequence (``capturable=True``).
+
+    The same float32 arithmetic in the same order as the default path (so the same bits); only
+    how the integers are gathered differs: histograms by ``index_add_`` of ones (int32 atomics on
+    CUDA), and the four tile LUTs of every interpolation cell gathered as bytes with one cached
+    index and read per pixel as one int32 (4 bytes: l11, l12, l21, l22).
+    """
+    B, H, W = src.shape
+    dev = src.device
+    if W % gx == 0 and H % gy == 0:
+        lut_src = src
+    else:
+        lut_src = F.pad(src[:, None].float(), (0, gx - W % gx, 0, gy - H % gy), mode="reflect")[:, 0].to(torch.uint8)
+    Hs, Ws = lut_src.shape[-2:]
+    th, tw = Hs // gy, Ws // gx
+    area = th * tw
+    T = gy * gx
+    geo = _geometry(B, H, W, Hs, Ws, gx, gy, dev)
+
+    key = lut_src.reshape(-1).int().add_(geo.hist_key.view(-1))  # (B * Hs * Ws,) int32
+    hist = torch.zeros(B * T * 256, dtype=torch.int32, device=dev)
+    hist.index_add_(0, key, geo.ones.expand(key.numel()))
+    hist = hist.view(B, T, 256)
+    if clip_limit > 0.0:  # as the default path (integers: the dtype does not change a value)
+        clip = max(int(clip_limit * area / 256), 1)
+        excess = (hist - clip).clamp_min_(0).sum(-1, keepdim=True, dtype=torch.int32)
+        hist = hist.clamp_max(clip)
+        batch = excess // 256
+        residual = excess - batch * 256
+        step = (256 // residual.clamp_min(1)).clamp_min_(1)
+        extra = (geo.i256 % step == 0) & (geo.i256 // step < residual)
+        hist += batch
+        hist += extra
+    lut = (hist.cumsum(-1).float() * geo.lut_scale).round_().clamp_(0, 255).to(torch.uint8)  # (B, T, 256)
+    packed = lut.view(B, T * 256).index_select(1, geo.lut_bytes).view(torch.int32).view(-1)  # (B * cells * 256,)
+    q = packed.index_select(0, src.reshape(-1).int().add_(geo.cell_key.view(-1)))
+    f = q.view(torch.uint8).view(B * H, W, 4).float()
+    f *= geo.xw
+    top = torch.add(f[..., 0], f[..., 1])
+    bot = torch.add(f[..., 2], f[..., 3])
+    top *= geo.ya1
+    bot *= geo.ya
+    top += bot
+    # in [0, 255] up to float rounding: the rounded value converts exactly
+    return top.round_().to(torch.uint8).view(B, H, W)
+
+
 class _Geo:
     pass
 
@@ -223,5 +276,12 @@ def _geometry(B, H, W, Hs, Ws, gx, gy, dev) -> _Geo:
     cell = ((ty1.long() + 1)[:, None] * ncx + (tx1.long() + 1)[None, :]).to(dev, i32)  # (H, W)
     boff_c = torch.arange(B, device=dev, dtype=i32)[:, None, None] * (ncy * ncx * 256)
     geo.cell_key = (cell * 256 + boff_c).contiguous()  # (B, H, W) int32
+    # capturable path: byte k of entry (b, cell, v) of the packed LUT table = LUT k of that cell
+    # (one index for all streams, along a stream's T * 256 LUT entries)
+    tiles = torch.stack([geo.cell_ty[:, cy][:, None] * gx + geo.cell_tx[:, cx][None, :]
+                         for cy, cx in ((0, 0), (0, 1), (1, 0), (1, 1))], -1)  # (ncy, ncx, 4)
+    lut_idx = tiles[:, :, None, :] * 256 + torch.arange(256, device=dev)[None, None, :, None]
+    geo.lut_bytes = lut_idx.reshape(-1).to(i32)  # (ncy * ncx * 256 * 4,)
+    geo.ones = torch.ones(1, dtype=torch.int32, device=dev)
     _GEO_CACHE[k] = geo
     return geo

@@ -2,24 +2,58 @@
 
 All points of all streams move together: per pyramid level the template windows of the previous
 image (grey levels and Scharr derivatives) and the 2x2 gradient matrices are computed once for every
-point; each iteration then samples only the next image's ``win x win`` windows (one ``index_select``
-of a ``(win+1) x (win+1)`` patch per point, four multiply-adds), solves the 2x2 systems in closed
-form and moves the points that are still active. Points that converged, oscillated, left the image
-or failed the eigenvalue test are frozen by masks. With ``early_exit`` (default) the template and
-the iterations work on the processed lanes only, the iterations on a compacted set of still-moving
-lanes (re-compacted when it halves), stopping when none is left: one host sync per iteration. With
-``early_exit=False`` exactly ``max_iters`` masked iterations run with no host sync (same results).
-The per-iteration kernel ``_lk_step`` is a pure tensor function; :func:`compile_step` swaps in a
-``torch.compile`` d version.
+point; each iteration then samples only the next image's ``win x win`` windows, solves the 2x2
+systems in closed form and moves the points that are still active. Points that converged,
+oscillated, left the image or failed the eigenvalue test are frozen by masks. Two strategies, the
+same results bit for bit (every inexact float value — the template, ``b``, the step and its tests —
+is computed by the same code on both):
+
+* ``early_exit=True`` (default, the tuned path): template and iterations on the processed lanes
+  only, the iterations on a compacted set of still-moving lanes (re-compacted when it halves),
+  stopping when none is left: one host sync per iteration (:func:`_lk_impl`, per-iteration kernel
+  ``_lk_step``; :func:`compile_step` swaps in a ``torch.compile`` d version).
+* ``early_exit=False`` (the static path, the capturable tracker's): every lane of every stream in
+  one pass, a fixed number of masked iterations per level (``LKOptions.iter_budget``, default
+  ``max_iters``), no host sync once the per-size constants are cached, no data-dependent shape and
+  an op count independent of B (:func:`_lk_static`, see "Static path" below).
 
 Layers: :func:`track_lk` checks and normalises its arguments (into :class:`LKOptions`) and calls
 ``_track_lk_impl`` (the forward pass) and, with ``forward_backward``, ``_forward_backward_impl``
-(VINS-Fusion's FLOW_BACK check); a pipeline that validated once calls those two on its pyramids.
-On the CPU the streams run in groups of at most ~1024 points (``_tuning.Strategy.lk_streams``),
-elsewhere in one pass. Every fast form (in place, window-view gather, folded template) gives the
+(VINS-Fusion's FLOW_BACK check); a pipeline that validated once calls those two on its pyramids
+(``return_overflow=True`` adds the per-stream overflow flag of a budget below ``max_iters``). On the
+CPU the early-exit path runs the streams in groups of at most ~1024 points
+(``_tuning.Strategy.lk_streams``), elsewhere in one pass; the static path is one pass everywhere.
+Every fast form (in place, window-view gather, folded template, difference image) gives the
 reference form's values bit for bit, so results do not depend on whether gradients are recorded.
 
-Performance layout (CPU and GPU alike), measured with ``benchmarks/bench_lk.py`` and py-spy:
+Static path (:func:`_lk_static`): 21 aten ops per iteration (fixed point on 8-bit levels, float32
+points, no gradient; 22 with float64 points; 34 with float interpolation, whose window difference is
+the early-exit path's), ~100 per level for the template and the bookkeeping: 4 levels x 30
+iterations are ~2,900 launches per call, whatever B; ``iter_budget`` (an int, or one per level)
+bounds them:
+
+* OpenCV's fixed-point sample is exact integer arithmetic, so any formulation gives its values: per
+  level the next image becomes a 4-channel *difference image* ``(J00 - J11, J01 - J11, J10 - J11,
+  J11) 2^-9`` (plus an inside flag, :func:`_difference_image`); one ``searchsorted`` gives the
+  window's top-left (floor, offset and clamp in one op), one advanced-index gather the ``(m, wh,
+  ww + 1, 5)`` windows, one ``baddbmm`` with the weights ``(iw00, iw01, iw10, 2^14, 0)``
+  (``remainder``, ``addcmul``, ``mul``, ``round``) and a ``floor`` the window difference. With
+  gradients, float images or levels that are not 8-bit, the window difference is the early-exit
+  path's (:func:`_window_diff`).
+* ``b`` as the early-exit path's sum; the step ``C s dinv`` with ``C`` the 2x2 matrix times ``2^-20``
+  (the same products and difference as ``(A12 b2 - A22 b1) D``), ``dinv`` times the inside flag (a
+  lane outside the image takes a zero step).
+* Stopping: the step test ``delta.double()`` + one ``bmm`` (float32 products are exact in float64:
+  one rounding, as ``ddot``); signs alternate between iterations so that one ``cdist`` (inf norm)
+  gives ``|delta + prevDelta|``; the two tests and the running mask are columns of a bool buffer
+  whose ``all`` is the next running mask, and the update is one ``addcmul`` by that mask. A lane that
+  stops does not take its stopping step in the loop: frozen at the same position it recomputes the
+  same step every iteration, and the end of the level applies it (OpenCV's ``nextPt += delta``,
+  ``-= delta / 2`` after an oscillation, told apart by ``|delta|^2 > eps^2``). A lane that stopped
+  outside the image left it (status 0 at level 0); one still running when the budget ends keeps
+  status 1 (OpenCV at ``max_iters``), or raises the overflow flag with a smaller budget.
+
+Performance layout of the early-exit path, measured on CPU with ``benchmarks/bench_lk.py`` and py-spy:
 
 * Both images are padded once per frame with BORDER_REFLECT_101 (:meth:`Pyramid.padded`: built when
   a pyramid is the next image, reused when it is the previous one) and every window set is one
@@ -36,6 +70,10 @@ Performance layout (CPU and GPU alike), measured with ``benchmarks/bench_lk.py``
 * OpenCV's integer weights take ~9 ops (``_fixed_weights``). For a few hundred points on CPU the
   cost is the number of small ops (~50 per iteration, ~60 per level template), for thousands the
   memory passes over the windows and the gathers (~10x an elementwise pass per element).
+* The static path trades memory passes for launches (a 5-channel gather and a batched matmul of
+  tiny matrices, every lane every iteration): on the CPU it is ~10x slower than the early-exit
+  path at B = 1 and ~25x at B = 16 (``aten::index`` and ``baddbmm`` dominate); it is meant for
+  devices where launches and host syncs are the cost.
 
 OpenCV behaviour reproduced (``modules/video/src/lkpyramid.cpp``, checked against cv2 4.x):
 
@@ -65,10 +103,17 @@ Gradients: the iterations are *unrolled* — the autograd graph keeps every iter
 and frozen lanes pass through ``torch.where``. This differentiates exactly the function computed
 (including the iteration cap, early stop and coarse-to-fine hand-over), needs no assumption that the
 solution is a converged stationary point (with ``eps = 0.01`` it usually is not, to ~1e-2 px) and is
-cheap because only few iterations run per point. An implicit-function gradient would need
-``dJ/dx`` at the solution and a converged fixed point; it is not used. Bilinear interpolation is
+cheap because only few iterations run per point. ``grad_mode="implicit"`` instead runs the forward
+without a graph and attaches the implicit-function gradient of the level-0 solution
+(:func:`_implicit_attach`: two differentiable Newton steps with the true Jacobian ``dF/dy`` at the
+detached solution, linearised at the root of the float equations; exact first and second
+derivatives of the converged solution; memory independent of the iteration count; no gradient to
+the coarse levels or ``init_pts``; zero gradient for lost, capped and ill-posed lanes). Bilinear interpolation is
 only piecewise smooth: at exactly integer positions (e.g. ``goodFeaturesToTrack`` corners) the
-gradient w.r.t. the points is the one-sided (right) derivative.
+gradient w.r.t. the points is the one-sided (right) derivative. The static path differentiates the
+same function: its gradients w.r.t. the points equal the early-exit path's bit for bit, those
+w.r.t. float images to rounding (the backward adds the windows' gradients into the images in
+another order).
 """
 
 from __future__ import annotations
@@ -98,6 +143,14 @@ _FLT_EPSILON = 1.1920928955078125e-07  # FLT_EPSILON
 _OSC = {torch.float32: 0.009999999776482582, torch.float64: math.nextafter(0.01, 0.0)}
 
 ImageOrPyramid = Union[torch.Tensor, Pyramid]
+GRAD_MODES = ("unrolled", "implicit")
+# implicit gradients: a lane gets a gradient only where the level-0 system at the solution is
+# well posed: det(A) >= _IMPLICIT_MIN_DET_RATIO det(G) (A the true Jacobian of the normal equations'
+# residual, G the Gauss-Newton matrix: equal under brightness constancy) and the Newton step at the
+# solution is at most _IMPLICIT_MAX_STEP pixels (the solution is a root of the float equations)
+_IMPLICIT_MIN_DET_RATIO = 0.05
+_IMPLICIT_MAX_STEP = 0.1
+_IMPLICIT_REFINE = 2  # Newton refinements of the linearisation point (no graph)
 
 
 def _ste(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
@@ -131,9 +184,7 @@ def _fixed_weights(frac: torch.Tensor, k: dict, scale: str = "iw") -> torch.Tens
         f = f.float()
     m = f.shape[-1]
     t = torch.addcmul(k["w_off"], f.unsqueeze(1), k["w_sgn"])  # (axis, [1-f, f], m) x 2^7
-    (s0, s1, s2), o = t.stride(), t.storage_offset()
-    xs = t.as_strided((1, 2, m), (0, s1, s2), o)  # t[0]
-    ys = t.as_strided((2, 1, m), (s1, 0, s2), o + s0)  # t[1]
+    xs, ys = t[0].unsqueeze(0), t[1].unsqueeze(1)  # (1, 2, m), (2, 1, m): views
     iw = torch.round(ys * xs).reshape(4, m)  # rows: ys[i] xs[j] at 2i + j
     return torch.addmm(k[scale + "_b"], k[scale + "_C"], iw)
 
@@ -182,6 +233,8 @@ def _win_consts(ww: int, wh: int, dtype: torch.dtype, device):
         i8192=torch.tensor(1 << (_W_BITS - 1), dtype=torch.int32, device=device),
         ar_ph=torch.arange(wh + 1, device=device),
         ar_c=torch.arange(ww + 3, device=device).clamp_max(ww),  # junk columns: any in-range index
+        # the static path's step matrices ((-A22, A12), (A12, -A11)) 2^-20, and their negatives
+        step_signs=t([[[[-1.0, 1.0], [1.0, -1.0]]], [[[1.0, -1.0], [-1.0, 1.0]]]]) * _FLT_SCALE,
     )
 
 
@@ -210,16 +263,24 @@ class _Level:
         o = Wp + 1
         # one extra row (wh + 2 rows): the iteration interpolates on the flattened patch with a row
         # pitch of pw (see _interp_flat), whose last tap reads one element past wh + 1 rows
-        self.Jview = Jp.as_strided((Jp.numel() - o - (wh + 1) * Wp - ww, wh + 2, ww + 1), (1, Wp, 1),
-                                   Jp.storage_offset() + o)
-        self.jstr = torch.tensor([[1], [Wp]], device=dev)  # int64: exact for any image size
-        dy, dx = torch.arange(wh + 2, device=dev), torch.arange(ww + 1, device=dev)
-        self.offs = dy[:, None] * Wp + dx[None, :] + o
+        self.Jview = Jp[o:].as_strided((Jp.numel() - o - (wh + 1) * Wp - ww, wh + 2, ww + 1), (1, Wp, 1))
+        self.jstr, self.offs, self.ioffs = _level_offsets(Wp, ww, wh, dev)
         # previous image: (ph + 2, pw + 2) patches starting at padded (u_y, u_x)
         self.Ip = Ip = Ip.reshape(-1)
         self.Iview = Ip.as_strided((Ip.numel() - (wh + 2) * Wp - (ww + 2), wh + 3, ww + 3), (1, Wp, 1))
-        dy, dx = torch.arange(wh + 3, device=dev), torch.arange(ww + 3, device=dev)
-        self.ioffs = dy[:, None] * Wp + dx[None, :]
+
+
+@functools.lru_cache(maxsize=64)
+def _level_offsets(Wp: int, ww: int, wh: int, device):
+    """``jstr`` (2, 1) = ``(1, Wp)`` (int64: exact for any image size) and the flat offsets of the
+    iteration's ``(wh + 2, ww + 1)`` window (from the patch's top-left ``Wp + 1``) and of the
+    template's ``(wh + 3, ww + 3)`` patch in a padded level of row pitch ``Wp`` (cached: built once,
+    not uploaded per call)."""
+    jstr = torch.tensor([[1], [Wp]], device=device)
+    dy, dx = torch.arange(wh + 2, device=device), torch.arange(ww + 1, device=device)
+    offs = dy[:, None] * Wp + dx[None, :] + (Wp + 1)
+    dy, dx = torch.arange(wh + 3, device=device), torch.arange(ww + 3, device=device)
+    return jstr, offs, dy[:, None] * Wp + dx[None, :]
 
 
 def _gather(view: torch.Tensor, flat: torch.Tensor, base: torch.Tensor, offs: torch.Tensor) -> torch.Tensor:
@@ -245,12 +306,33 @@ def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k:
     window origins are ``[-win, size)``. Returns the updated ``p, pd``, the lanes that keep iterating, the lanes that
     moved in this iteration (active and inside) and those that stopped by oscillation (None at j = 0).
     """
+    diff, inside = _window_diff(p, iv, lane, J, jview, jstr, offs, k, spanm1, fixed, iv_init)
+    moved = act & inside
+    b = (g * diff.unsqueeze(1)).sum(2).t() * _FLT_SCALE  # (2, m): b1, b2
+    # OpenCV: delta = ((A12 b2 - A22 b1) D, (A12 b1 - A11 b2) D), same float operation order
+    delta = (a12 * b.flip(0) - adiag * b) * dinv
+    dd = delta.detach().double()
+    still = moved & ((dd * dd).sum(0) > eps2)  # OpenCV: stop when delta.ddot(delta) <= epsilon^2 (double)
+    osc = None
+    if not first:
+        osc = still & ((delta.detach() + pd.detach()).abs() <= osc_thr).all(0)
+        still = still & ~osc
+    m2 = moved.unsqueeze(0)
+    return torch.where(m2, p + delta, p), torch.where(m2, delta, pd), still, moved, osc
+
+
+def _window_diff(p, iv, lane, J, jview, jstr, offs, k: dict, spanm1, fixed: bool, iv_init: bool = False):
+    """The window difference of one iteration, ``J(p + x) - I(x)`` over the window in the pitched
+    layout: ``(m, wh * (ww + 1))`` (1/32 grey levels; OpenCV's integers in fixed point), and the
+    lanes whose window origin ``floor(p)`` is inside ``[-win, size)`` ``(m,)`` bool (the others read
+    clamped, in-bounds windows). Shared by both paths (the float values must be computed by the same
+    code); arguments as :func:`_lk_step`."""
     c05 = k["c05"]
     ip = torch.floor(p.detach())
     u = ip + k["win"]
     # clamp so that lanes that are masked out still read in-bounds memory; unchanged <=> inside
     uc = torch.clamp(u, min=k["zero"], max=spanm1)
-    moved = act & (uc == u).all(0)
+    inside = (uc == u).all(0)
     # top-left flat index in the padded next image; whole (ph, pw) patches, points first
     base = (uc.long() * jstr).sum(0)
     if lane is not None:
@@ -274,17 +356,7 @@ def _lk_step(p, pd, act, iv, g, a12, adiag, dinv, lane, J, jview, jstr, offs, k:
             diff = _ste(jval - 0.5, torch.floor(jval)) - iv
     else:  # x32: grey levels in 1/32 units (exact scaling)
         diff = _interp_flat(jp, _soft_weights(frac) * 32.0, n, pw) - iv
-    b = (g * diff.unsqueeze(1)).sum(2).t() * _FLT_SCALE  # (2, m): b1, b2
-    # OpenCV: delta = ((A12 b2 - A22 b1) D, (A12 b1 - A11 b2) D), same float operation order
-    delta = (a12 * b.flip(0) - adiag * b) * dinv
-    dd = delta.detach().double()
-    still = moved & ((dd * dd).sum(0) > eps2)  # OpenCV: stop when delta.ddot(delta) <= epsilon^2 (double)
-    osc = None
-    if not first:
-        osc = still & ((delta.detach() + pd.detach()).abs() <= osc_thr).all(0)
-        still = still & ~osc
-    m2 = moved.unsqueeze(0)
-    return torch.where(m2, p + delta, p), torch.where(m2, delta, pd), still, moved, osc
+    return diff, inside
 
 
 # indirection so that a benchmark / user can swap in ``torch.compile(_lk_step, dynamic=True)``
@@ -326,7 +398,7 @@ def _scharr_flat(f: torch.Tensor, pitch: int, n: int) -> torch.Tensor:
     ``n``). Needs ``L >= n + 2 pitch``. Integer taps: exact on integer grey levels (float32 or int32)
     whatever the order of the additions."""
     up, mid, down = f[:, 0:n], f[:, pitch:pitch + n], f[:, 2 * pitch:2 * pitch + n]
-    if not _tuning.inplace_ok(f):
+    if not _tuning.inplace_ok(f) or torch.compiler.is_compiling():  # the compiler takes no strided out=
         s = torch.add((up + down) * 3, mid, alpha=10)
         d = down - up
         G = torch.stack((s[:, 2:] - s[:, :-2], torch.add((d[:, :-2] + d[:, 2:]) * 3, d[:, 1:-1], alpha=10)), 1)
@@ -410,6 +482,42 @@ def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Te
     return unpitch(iv), unpitch(g)
 
 
+def _gradient_system(g: torch.Tensor, act: torch.Tensor, ww: int, wh: int, min_eig: float):
+    """The level's 2x2 gradient matrices of ``m`` lanes from their template derivatives ``g``
+    ``(m, 2, n)`` (pitched, junk column 0): ``A11, A12, A22`` ``(m,)`` (scaled by ``2^-20``),
+    ``dinv = 1/det`` (0 where not ``ok``) and ``ok`` = ``act`` and OpenCV's eigenvalue and determinant
+    tests. Shared by both paths (same float operations)."""
+    # (4, m): A11, A12, A21, A22 (the junk column of g is 0). Products and a contiguous sum:
+    # ~3x faster on CPU than a bmm of (m, 2, n) matrices
+    A = (g.unsqueeze(2) * g.unsqueeze(1)).sum(-1).view(-1, 4).t() * _FLT_SCALE
+    a11, a12, _, a22 = A.unbind(0)
+    Ad = A.detach()
+    with torch.no_grad():  # discrete decision; sqrt at 0 would poison gradients
+        d11, d12, _, d22 = Ad.unbind(0)
+        det = d11 * d22 - d12 * d12
+        dd = d11 - d22
+        eig = (d22 + d11 - torch.sqrt(dd * dd + 4.0 * d12 * d12)) / (2.0 * ww * wh)
+        ok = act & (eig >= min_eig) & (det >= _FLT_EPSILON)
+    if not _tuning.inplace_ok(A):  # the same determinant, differentiable
+        det = a11 * a22 - a12 * a12
+    # 1/det where ok, else 0 (bool / float: 1/det or 0 exactly); the inner where keeps masked lanes
+    # finite (torch.where differentiates both branches)
+    dinv = ok / torch.where(ok, det, 1.0)
+    return a11, a12, a22, dinv, ok
+
+
+def _level_start(lv: _Level, p0: torch.Tensor, valid: torch.Tensor, level: int, k: dict):
+    """Window origins of the template at ``level``: ``ip = floor(p0 / 2^level - halfWin)``,
+    ``uc = ip + win`` clamped, the fractional part, and the lanes processed at this level
+    (``valid`` and the origin inside ``[-win, size)``)."""
+    pp = p0 * (1.0 / (1 << level)) - k["half"]
+    ip = torch.floor(pp.detach())
+    u = ip + k["win"]
+    uc = torch.clamp(u, min=k["zero"], max=lv.spanm1)
+    proc = valid & (uc == u).all(0)
+    return uc, pp - ip, proc
+
+
 def _lk_impl(
     prev: Pyramid,
     nxt: Pyramid,
@@ -418,16 +526,24 @@ def _lk_impl(
     init: torch.Tensor | None,
     opts: LKOptions,
     top: int,
-) -> Tuple[torch.Tensor, torch.Tensor]:
-    """The LK of one group of streams on levels ``top..0`` (see :func:`_track_lk_impl`)."""
-    win, max_iters, min_eig = opts.win_size, opts.max_iters, opts.min_eig_threshold
-    fixed, early_exit, eps2 = opts.fixed_point, opts.early_exit, opts.eps * opts.eps
+    want_overflow: bool = False,
+    capped: list | None = None,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The early-exit LK of one group of streams on levels ``top..0`` (see :func:`_track_lk_impl`):
+    template and iterations on the processed lanes only, the iterations compacted to the
+    still-moving lanes, stopping when none is left (host syncs). Returns ``next_pts (B, N, 2)``,
+    ``status (B, N)`` and, with ``want_overflow`` and a budget below ``max_iters``, ``(B,)`` bool:
+    some lane of the stream was still iterating when a level's budget ended (else None). With a
+    list ``capped``, appends the ``(M,)`` bool mask of the lanes still iterating when level 0's
+    budget ended (read by the implicit gradient; no effect on the values)."""
+    win, min_eig = opts.win_size, opts.min_eig_threshold
+    fixed, eps2 = opts.fixed_point, opts.eps * opts.eps
     B, N, _ = pts.shape
     M = B * N
     dtype, dev = pts.dtype, pts.device
     ww, wh = win
     k = _win_consts(ww, wh, dtype, dev)
-    half, winv, zero = k["half"], k["win"], k["zero"]
+    half = k["half"]
     osc_thr = _OSC.get(dtype, 0.01)
     p0 = pts.reshape(M, 2).t().contiguous()  # (2, M): points last throughout
     valid = valid.reshape(M)
@@ -435,55 +551,34 @@ def _lk_impl(
     lanes_all = torch.arange(B, device=dev).repeat_interleave(N) if B > 1 else None
     # OpenCV's nextPts[i] (window centre) at the current level's scale
     out = (p0 if init is None else init.reshape(M, 2).t().contiguous()) * (1.0 / (1 << top))
+    overflow = None
 
     for level in range(top, -1, -1):
         if level != top:
             out = out * 2.0
+        budget = opts.budget_at(level)
         H, W = nxt.levels[level].shape[-2:]
         lv = _Level(prev.padded(level, wh + 1, ww + 1, dtype), nxt.padded(level, wh + 1, ww + 1, dtype), H, W,
                     win, dtype)
 
         # ---- lanes processed at this level: window origin inside [-win, size)
-        pp = p0 * (1.0 / (1 << level)) - half
-        ip = torch.floor(pp.detach())
-        u = ip + winv
-        uc = torch.clamp(u, min=zero, max=lv.spanm1)
-        proc = valid & (uc == u).all(0)
+        uc, frac, proc = _level_start(lv, p0, valid, level, k)
         if level == 0:
             status = status & proc
-        frac = pp - ip
-        if early_exit:
-            ws = proc.nonzero().squeeze(1)  # host sync: template and iterations on these lanes only
-            if ws.numel() == 0:
-                continue
-            ucl = uc.index_select(1, ws).long()
-            frac = frac.index_select(1, ws)
-            lanes = None if lanes_all is None else lanes_all.index_select(0, ws)
-            o0 = out.index_select(1, ws)
-            act = torch.ones_like(ws, dtype=torch.bool)
-        else:
-            # all lanes, masked; lanes not processed get origin 0 so that nothing reads out of
-            # bounds even for non-finite input (they never move: their result stays ``out``)
-            ws, lanes, o0, act = None, lanes_all, out, proc
-            ucl = torch.where(proc, uc, zero).long()
+        ws = proc.nonzero().squeeze(1)  # host sync: template and iterations on these lanes only
+        if level == 0 and capped is not None:
+            capped.append(torch.zeros(M, dtype=torch.bool, device=dev))
+        if ws.numel() == 0:
+            continue
+        ucl = uc.index_select(1, ws).long()
+        frac = frac.index_select(1, ws)
+        lanes = None if lanes_all is None else lanes_all.index_select(0, ws)
+        o0 = out.index_select(1, ws)
+        act = torch.ones_like(ws, dtype=torch.bool)
 
         # ---- template: previous image window, derivatives, gradient matrix (once per level)
-        iv, g = _template(lv, ucl, frac, lanes, fixed, dtype, k, sync=early_exit)
-        # (4, m): A11, A12, A21, A22 (the junk column of g is 0). Products and a contiguous sum:
-        # ~3x faster on CPU than a bmm of (m, 2, n) matrices
-        A = (g.unsqueeze(2) * g.unsqueeze(1)).sum(-1).view(-1, 4).t() * _FLT_SCALE
-        a11, a12, _, a22 = A.unbind(0)
-        Ad = A.detach()
-        with torch.no_grad():  # discrete decision; sqrt at 0 would poison gradients
-            d11, d12, _, d22 = Ad.unbind(0)
-            det = d11 * d22 - d12 * d12
-            dd = d11 - d22
-            eig = (d22 + d11 - torch.sqrt(dd * dd + 4.0 * d12 * d12)) / (2.0 * ww * wh)
-            ok = act & (eig >= min_eig) & (det >= _FLT_EPSILON)
-        if not _tuning.inplace_ok(A):  # the same determinant, differentiable
-            det = a11 * a22 - a12 * a12
-        # keep masked lanes finite: torch.where differentiates both branches
-        dinv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+        iv, g = _template(lv, ucl, frac, lanes, fixed, dtype, k, sync=True)
+        a11, a12, a22, dinv, ok = _gradient_system(g, act, ww, wh, min_eig)
         adiag = torch.stack((a22, a11))
 
         # ---- iterations: only the next image is sampled
@@ -497,13 +592,11 @@ def _lk_impl(
         act = ok
         lane = None if lanes is None else lanes * lv.HWp
         p = o0 - half  # OpenCV's local nextPt (window origin)
-        if ws is None:
-            p = torch.where(proc, p, zero)
         pd = torch.zeros_like(p)
         moved = oscf = None
         st = (lv.Jp, lv.Jview, lv.jstr, lv.offs, k, lv.spanm1)
-        for j in range(max_iters):
-            if ws is not None and j > 0:
+        for j in range(budget):
+            if j > 0:
                 n_act = int(act.sum())  # host sync (early exit / compaction)
                 if n_act == 0:
                     break
@@ -530,11 +623,231 @@ def _lk_impl(
                 oscf = oscf | osc
             if fail is not None:
                 fail = fail | (act_in & ~mv)  # left the image
+        if level == 0 and capped is not None:
+            capped[-1] = capped[-1].index_copy(0, ws, act)
+        if want_overflow and budget < opts.max_iters:  # lanes still iterating when the budget ended
+            lost = torch.zeros(M, dtype=torch.bool, device=dev).index_copy_(0, ws, act).view(B, N).any(1)
+            overflow = lost if overflow is None else overflow | lost
         if moved is not None:
             out, status = _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half)
         elif fail is not None:
             out, status = _write_back(out, status, ws, o0, p, pd, None, None, fail, half)
-    return out.t().reshape(B, N, 2), status.reshape(B, N)
+    if want_overflow and overflow is None and opts.inexact:
+        overflow = torch.zeros(B, dtype=torch.bool, device=dev)
+    return out.t().reshape(B, N, 2), status.reshape(B, N), overflow
+
+
+@functools.lru_cache(maxsize=64)
+def _lane_index(B: int, N: int, device) -> torch.Tensor:
+    """``(B N,)`` int64: the stream of each lane (cached: no per-call upload, no host sync)."""
+    return torch.arange(B, device=device).repeat_interleave(N, output_size=B * N)
+
+
+@functools.lru_cache(maxsize=64)
+def _static_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
+    """Per level-size constants of the static path's fixed-point iterations (cached).
+
+    ``grid`` ``(2, L)``: boundaries for ``searchsorted(grid, p, right=True)``, which gives, per axis,
+    ``idx = floor(p) + win + 1`` for window origins inside ``[-win, size)`` (rows ``-win .. size``,
+    the shorter padded with ``+inf``), 0 below and ``size + win + 1`` above: one op for the floor,
+    the offset, the clamp and the integer conversion. ``idx`` is the window's top-left in the
+    padded level's 4-channel image (:func:`_difference_image`). ``flag`` ``(Hp - 1, Wp, 1)``: 1 at
+    the ``idx`` of inside origins, 0 at the two margins (outside)."""
+    gx = torch.arange(-ww, W + 1, dtype=dtype, device=device)
+    gy = torch.arange(-wh, H + 1, dtype=dtype, device=device)
+    grid = torch.full((2, max(gx.numel(), gy.numel())), math.inf, dtype=dtype, device=device)
+    grid[0, :gx.numel()] = gx
+    grid[1, :gy.numel()] = gy
+    r = torch.arange(H + 2 * wh + 1, device=device)
+    c = torch.arange(W + 2 * ww + 2, device=device)
+    flag = (((r >= 1) & (r <= H + wh))[:, None] & ((c >= 1) & (c <= W + ww))[None, :]).to(dtype)
+    return grid, flag.unsqueeze(-1)
+
+
+@functools.lru_cache(maxsize=32)
+def _static_consts(device):
+    """OpenCV's bilinear weights as one ``addcmul`` + one product (see :func:`_fixed_weights`):
+    ``T = off + frac * sgn`` ``(2: x/y, m, 5)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10, 2^14,
+    0)``, the weights of the difference image's channels."""
+    f32 = torch.float32
+    off = torch.tensor([[[128.0, 0, 128, 128, 0]], [[128.0, 128, 0, 128, 0]]], dtype=f32, device=device)
+    sgn = torch.tensor([[[-128.0, 128, -128, 0, 0]], [[-128.0, -128, 128, 0, 0]]], dtype=f32, device=device)
+    return off, sgn
+
+
+def _difference_image(Jp: torch.Tensor, flag: torch.Tensor) -> torch.Tensor:
+    """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 5)``: at ``(y, x)`` the channels
+    ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]`` and the
+    inside flag (the last column is padding). OpenCV's fixed-point sample ``sum iw_ab J_ab 2^-9`` is
+    then one dot product with ``(iw00, iw01, iw10, 2^14, 0)``: exact (integers times ``2^-9`` below
+    ``2^23``), whatever the order of the multiply-adds."""
+    J = Jp[:, 0]
+    d = torch.stack((J[:, :-1, :-1], J[:, :-1, 1:], J[:, 1:, :-1], J[:, 1:, 1:]), -1)
+    d = torch.cat((d[..., :3] - d[..., 3:], d[..., 3:]), -1) * 2.0**-9
+    d = torch.nn.functional.pad(d, (0, 0, 0, 1))
+    return torch.cat((d, flag.expand(d.shape[:-1] + (1,))), -1)
+
+
+def _bmm_exact(device) -> bool:
+    """The difference-image dot products are exact unless CUDA matmuls may round to TF32."""
+    return torch.device(device).type != "cuda" or not torch.backends.cuda.matmul.allow_tf32
+
+
+def _lk_static(
+    prev: Pyramid,
+    nxt: Pyramid,
+    pts: torch.Tensor,
+    valid: torch.Tensor,
+    init: torch.Tensor | None,
+    opts: LKOptions,
+    top: int,
+    capped: list | None = None,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The static LK (``early_exit=False``): all lanes of all streams in one pass, ``opts.budget_at``
+    masked iterations per level, no host sync, an op count independent of the batch and of the data.
+
+    Same results as :func:`_lk_impl` bit for bit (both compute every inexact float value, ``b``, the
+    step, the tests, with the same code): a lane that stops (OpenCV's loop break) is frozen by a
+    ``running`` mask. Returns ``next_pts (B, N, 2)``, ``status (B, N)`` and, with a budget below
+    ``max_iters``, the ``(B,)`` overflow flag (a lane of the stream still running at the end of some
+    level's budget), else None.
+
+    Per iteration (fixed point, no gradient; see the module notes): ``searchsorted`` gives the
+    window's top-left in the difference image, one advanced-index gather reads ``(m, wh, ww + 1,
+    5)`` windows, one ``baddbmm`` with the weights (``remainder``, ``addcmul``, ``mul``, ``round``)
+    plus ``floor`` gives the window difference; with gradients, or float images, the window
+    difference is :func:`_window_diff`'s (the early-exit path's code). Then ``b`` and the step as
+    the early-exit path, the step frozen (0) for lanes outside the image; a lane that stops does
+    not take the stopping step in the loop: it is applied at the end of the level from the last
+    iteration's step, which a frozen lane recomputes identically at the same position (OpenCV's
+    ``nextPt += delta``, and ``-= delta / 2`` after an oscillation). Signs alternate between
+    iterations so that one ``cdist`` (inf-norm) gives ``|delta + prevDelta|``.
+    """
+    win, min_eig = opts.win_size, opts.min_eig_threshold
+    fixed, eps2 = opts.fixed_point, opts.eps * opts.eps
+    B, N, _ = pts.shape
+    M = B * N
+    dtype, dev = pts.dtype, pts.device
+    ww, wh = win
+    n = wh * (ww + 1)  # pitched window
+    k = _win_consts(ww, wh, dtype, dev)
+    half, zero = k["half"], k["zero"]
+    osc_thr = _OSC.get(dtype, 0.01)
+    if M == 0:
+        return torch.empty_like(pts), valid.clone(), None
+    p0 = pts.reshape(M, 2).t().contiguous()  # (2, M): points last
+    valid = valid.reshape(M)
+    status = valid
+    lanes = _lane_index(B, N, dev)
+    out = (p0 if init is None else init.reshape(M, 2).t().contiguous()) * (1.0 / (1 << top))
+    overflow = None
+
+    for level in range(top, -1, -1):
+        if level != top:
+            out = out * 2.0
+        budget = opts.budget_at(level)
+        inexact = budget < opts.max_iters
+        H, W = nxt.levels[level].shape[-2:]
+        Jpad = nxt.padded(level, wh + 1, ww + 1, dtype)
+        lv = _Level(prev.padded(level, wh + 1, ww + 1, dtype), Jpad, H, W, win, dtype)
+        uc, frac, proc = _level_start(lv, p0, valid, level, k)
+        if level == 0:
+            status = status & proc
+        # lanes not processed get origin 0 so that nothing reads out of bounds even for non-finite
+        # input (they never move: their result stays ``out``)
+        ucl = torch.where(proc, uc, zero).long()
+        iv, g = _template(lv, ucl, frac, lanes, fixed, dtype, k, sync=False)
+        a11, a12, a22, dinv, ok = _gradient_system(g, proc, ww, wh, min_eig)
+        o0 = out
+        if budget == 0:
+            if level == 0:
+                status = status & ok
+                if capped is not None:
+                    capped.append(ok)
+            if inexact:
+                lost = ok.view(B, N).any(1)
+                overflow = lost if overflow is None else overflow | lost
+            continue
+        # the difference image's dot products are exact for OpenCV's 8-bit levels only
+        fast = fixed and nxt.rounded and _tuning.inplace_ok(iv, g, lv.Jp, o0) and _bmm_exact(dev)
+        if fixed and _tuning.inplace_ok(iv, lv.Jp, o0):
+            iv = k["c05"] - iv  # 1/2 - template: the rounding's 1/2 and the difference in one op
+            iv_init = True
+        else:
+            iv_init = False
+        if fast:
+            grid, flag_img = _static_tables(H, W, ww, wh, dtype, dev)
+            J5 = _difference_image(Jpad, flag_img)
+            Hq, Wq = J5.shape[1:3]
+            J5w = J5.as_strided((B, Hq - wh + 1, Wq - ww, wh, ww + 1, 5), (Hq * Wq * 5, Wq * 5, 5, Wq * 5, 5, 1))
+            w_off, w_sgn = _static_consts(dev)
+            hiv = iv.view(M, n, 1)
+        else:
+            lane = lanes * lv.HWp
+            st = (lv.Jp, lv.Jview, lv.jstr, lv.offs, k, lv.spanm1)
+        # step = C s dinv with C = ((-A22, A12), (A12, -A11)) 2^-20: the products and the difference
+        # as the early-exit path's (A12 b2 - A22 b1, A12 b1 - A11 b2) (b = s 2^-20, a power of two)
+        # even / odd iterations: the step with alternating signs (2, M, 2, 2); the scale and signs
+        # are powers of two: exact
+        Cs = torch.stack((a22, a12, a12, a11), 1).view(M, 2, 2) * k["step_signs"]
+        p = torch.where(proc, o0 - half, zero)  # OpenCV's local nextPt (window origin)
+        # the stopping tests as columns (conv, osc, running) of two alternating bool buffers: one
+        # ``all`` gives the next running mask (iteration j reads tst[j % 2], writes tst[1 - j % 2])
+        tst = torch.empty((2, 3, M), dtype=torch.bool, device=dev)
+        tst[0, 1].fill_(True)  # j = 0: no oscillation test
+        tst[0, 2].copy_(ok)
+        sdp = None
+        for j in range(budget):
+            sg = 1.0 - 2.0 * (j % 2)
+            if fast:
+                idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
+                Wn = J5w[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 5)
+                f = torch.remainder(p, 1.0)  # p - floor(p), exact
+                if f.dtype != torch.float32:
+                    f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
+                iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 5)
+                iw = torch.mul(iw[0], iw[1]).round_()
+                if iw.dtype != dtype:
+                    iw = iw.to(dtype)
+                diff = torch.baddbmm(hiv, Wn.view(M, n, 5), iw.unsqueeze(-1)).floor_().view(M, 1, n)
+                flag = Wn[:, 0, 0, 4]
+            else:
+                diff, inside = _window_diff(p, iv, lane, *st, fixed, iv_init)
+                diff = diff.unsqueeze(1)
+                flag = inside.to(dtype)
+            s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the early-exit path's sum
+            sd = (Cs[j % 2] * s.unsqueeze(1)).sum(2) * (dinv * flag).unsqueeze(1)  # (m, 2): sg * delta
+            t, t1 = tst[j % 2], tst[1 - j % 2]
+            dd = sd.detach().double()
+            # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
+            torch.gt(torch.bmm(dd.unsqueeze(1), dd.unsqueeze(2)).view(M), eps2, out=t[0])
+            if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
+                osc = torch.cdist(sd.detach().unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
+                torch.gt(osc, osc_thr, out=t[1])
+            else:
+                moved0 = flag > 0
+            run = torch.all(t, 0, out=t1[2])
+            if not _tuning.inplace_ok(p, sd):
+                run = run.clone()  # autograd keeps the mask, the buffer is rewritten two iterations on
+            p = torch.addcmul(p, sd.t(), run, value=sg)
+            sdp = sd.detach()
+        conv = t[0]  # the last iteration's step test: for a frozen lane, that of its stopping step
+        # ---- end of level: the stopping step of the lanes that stopped inside the image
+        stopped = ok > run  # ok & ~run: converged, oscillated, or left the image
+        inside = flag > 0  # the last iteration's: where the frozen lanes are
+        left = stopped > inside  # stopped outside: left the image (OpenCV: status 0 at level 0)
+        took = stopped & inside  # converged or oscillated: take the stopping step
+        o = torch.addcmul(p, sd.t(), took, value=sg) + half
+        o = torch.addcmul(o, sd.t(), took & conv, value=-0.5 * sg)  # oscillated: |delta|^2 > eps^2
+        out = torch.where(ok & moved0, o, o0)  # lanes that never moved keep the level's start
+        if level == 0:
+            status = status & (ok > left)
+            if capped is not None:
+                capped.append(run.clone())
+        if inexact:
+            lost = run.view(B, N).any(1)
+            overflow = lost if overflow is None else overflow | lost
+    return out.t().reshape(B, N, 2), status.reshape(B, N), overflow
 
 
 def _write_back(out, status, ws, o0, p, pd, moved, oscf, fail, half):
@@ -594,10 +907,20 @@ class LKOptions:
         min_eig_threshold: ``minEigThreshold``.
         fixed_point: OpenCV's 14-bit fixed-point interpolation (8-bit images).
         early_exit: compact to the still-moving points, stop when none is left (one host sync per
-            iteration); False: exactly ``max_iters`` masked iterations, no host sync.
+            iteration; the tuned path); False: the static, capturable path (a fixed number of
+            masked iterations, all streams in one pass, no host sync; the same results).
+        grad_mode: ``"unrolled"`` (default: autograd through every iteration) or ``"implicit"``
+            (implicit-function gradient of the level-0 solution, see :func:`_implicit_attach`; the
+            forward values are the same bit for bit).
+        iter_budget: iterations run per level (None: ``max_iters``, exact), an int or a tuple per
+            level (``iter_budget[l]`` for level ``l``, the last entry for the levels above). A
+            smaller budget bounds the work of the static path (on both paths the same results); a
+            lane still iterating when it ends may differ from OpenCV, which
+            ``_track_lk_impl(..., return_overflow=True)`` reports per stream.
 
     Raises:
-        ConfigError: a window <= 2 or a negative / non-int ``max_level``.
+        ConfigError: a window <= 2, a negative / non-int ``max_level`` or ``iter_budget``, an
+            unknown ``grad_mode``.
     """
 
     win_size: Tuple[int, int] = (21, 21)
@@ -607,8 +930,12 @@ class LKOptions:
     min_eig_threshold: float = 1e-4
     fixed_point: bool = True
     early_exit: bool = True
+    iter_budget: int | Tuple[int, ...] | None = None
+    grad_mode: str = "unrolled"
 
     def __post_init__(self):
+        if self.grad_mode not in GRAD_MODES:
+            raise ConfigError(f"grad_mode must be one of {GRAD_MODES}, got {self.grad_mode!r}")
         win = self.win_size
         win = (win, win) if isinstance(win, int) else (int(win[0]), int(win[1]))
         if win[0] <= 2 or win[1] <= 2:
@@ -618,8 +945,35 @@ class LKOptions:
         fields = dict(win_size=win, max_iters=min(max(int(self.max_iters), 0), 100),
                       eps=min(max(float(self.eps), 0.0), 10.0), min_eig_threshold=float(self.min_eig_threshold),
                       fixed_point=bool(self.fixed_point), early_exit=bool(self.early_exit))
+        b = self.iter_budget
+        if b is not None:
+            items = b if isinstance(b, (tuple, list)) else (b,)
+            if not items or any(isinstance(x, bool) or not isinstance(x, int) or x < 0 for x in items):
+                raise ConfigError(f"iter_budget must be None, an int >= 0 or a non-empty tuple of them, got {b!r}")
+            fields["iter_budget"] = tuple(items) if isinstance(b, (tuple, list)) else b
         for name, value in fields.items():
             object.__setattr__(self, name, value)
+
+    def budget_at(self, level: int) -> int:
+        """Iterations run at ``level``: ``iter_budget`` capped by ``max_iters`` (``max_iters`` when None)."""
+        b = self.iter_budget
+        if b is None:
+            return self.max_iters
+        if isinstance(b, tuple):
+            b = b[min(level, len(b) - 1)]
+        return min(b, self.max_iters)
+
+    @property
+    def budget(self) -> int:
+        """The largest per-level budget (``max_iters`` when ``iter_budget`` is None)."""
+        b = self.iter_budget
+        return max(self.budget_at(l) for l in range(len(b))) if isinstance(b, tuple) else self.budget_at(0)
+
+    @property
+    def inexact(self) -> bool:
+        """Some level's budget is below ``max_iters`` (results may differ from OpenCV: overflow flag)."""
+        b = self.iter_budget
+        return b is not None and any(min(x, self.max_iters) < self.max_iters for x in (b if isinstance(b, tuple) else (b,)))
 
 
 def track_lk(
@@ -640,6 +994,7 @@ def track_lk(
     fb_use_initial_flow: bool = True,
     fixed_point: bool | None = None,
     early_exit: bool = True,
+    grad_mode: str = "unrolled",
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Sparse pyramidal Lucas–Kanade, as ``cv2.calcOpticalFlowPyrLK`` with the same arguments.
 
@@ -670,6 +1025,11 @@ def track_lk(
         early_exit: compact the iteration to the still-moving points and stop when none is left —
             one host sync (``nonzero``) per iteration. False runs exactly ``max_iters`` masked
             iterations with no host sync (CUDA graphs / ``torch.compile`` friendly); same results.
+        grad_mode: ``"unrolled"`` (default) differentiates every iteration of every level;
+            ``"implicit"`` runs the forward without a graph and attaches the implicit-function
+            gradient of the level-0 solution (memory independent of the iteration count; no
+            gradient to ``init_pts``; zero gradient for lanes with status False, lanes that hit
+            ``max_iters`` at level 0, and ill-posed lanes). Same values either way.
 
     Returns:
         ``next_pts``: ``(B, N, 2)`` pts dtype, pixels in ``next``; ``status``: ``(B, N)`` bool.
@@ -693,7 +1053,8 @@ def track_lk(
             return x.rounded if isinstance(x, Pyramid) else as_image_batch(x).dtype == torch.uint8
 
         fixed_point = _is8(prev) and _is8(next)
-    opts = LKOptions(win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, early_exit)
+    opts = LKOptions(win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, early_exit,
+                     grad_mode=grad_mode)
     fb_level = opts.max_level if fb_max_level is None else fb_max_level
     if not isinstance(fb_level, int) or fb_level < 0:
         raise ConfigError(f"fb_max_level must be an int >= 0, got {fb_max_level!r}")
@@ -719,7 +1080,9 @@ def _track_lk_impl(
     valid: torch.Tensor,
     init_pts: torch.Tensor | None,
     opts: LKOptions,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+    return_overflow: bool = False,
+    capped: list | None = None,
+):
     """Forward LK (:func:`track_lk` without the backward check), no input checks.
 
     Args:
@@ -729,15 +1092,29 @@ def _track_lk_impl(
         valid: ``(B, N)`` bool.
         init_pts: ``(B, N, 2)`` initial guess in ``next``, or None (start at ``pts``).
         opts: :class:`LKOptions`.
+        return_overflow: also return the ``(B,)`` bool overflow flag.
+        capped: a list to which the ``(B N,)`` bool mask of the lanes that hit level 0's
+            iteration budget is appended (a lane not processed at level 0 is False).
 
     Returns:
-        ``next_pts (B, N, 2)`` (pts dtype, pixels in ``next``) and ``status (B, N)`` bool.
+        ``next_pts (B, N, 2)`` (pts dtype, pixels in ``next``) and ``status (B, N)`` bool; with
+        ``return_overflow`` also ``overflow (B,)`` bool: some lane of the stream was still iterating
+        when a level's iteration budget (``opts.iter_budget``) ended, so that its result may differ
+        from OpenCV's (always False when the budget is ``max_iters``).
 
-    On the CPU the streams are tracked in groups (``_tuning.Strategy.lk_streams``), so that the
-    per-level temporaries (``(win+1)^2 x lanes`` windows and their indices) stay cache friendly; the
-    padded levels are built once for the whole batch and shared by the groups as views (a pyramid
-    that is ``next`` now keeps them for the call in which it is ``prev``). Elsewhere: one pass.
+    ``opts.early_exit`` (the tuned path): on the CPU the streams are tracked in groups
+    (``_tuning.Strategy.lk_streams``), so that the per-level temporaries (``(win+1)^2 x lanes``
+    windows and their indices) stay cache friendly; the padded levels are built once for the whole
+    batch and shared by the groups as views (a pyramid that is ``next`` now keeps them for the call
+    in which it is ``prev``). Elsewhere: one pass. ``early_exit=False`` (the capturable path): one
+    static pass on every device (:func:`_lk_static`): no host sync once the per-size constants are
+    cached, an op count independent of B, the same results.
+
+    ``opts.grad_mode == "implicit"`` with a gradient to compute: the forward above without a graph,
+    then :func:`_implicit_attach` (the same values).
     """
+    if opts.grad_mode == "implicit" and _wants_grad(prev, next, pts, init_pts):
+        return _track_lk_implicit(prev, next, pts, valid, init_pts, opts, return_overflow)
     top = _level_cap(prev, next, opts.max_level, opts.win_size)
     B, N = pts.shape[:2]
     if init_pts is not None:
@@ -747,21 +1124,34 @@ def _track_lk_impl(
         guessed = torch.isfinite(init_pts).all(-1)
         init_pts = torch.where(guessed.unsqueeze(-1), init_pts, pts)
         valid = valid & guessed
-    per = _tuning.for_device(pts.device).lk_streams(B, N)
-    if per is None:
-        return _lk_impl(prev, next, pts, valid, init_pts, opts, top)
-    ww, wh = opts.win_size
-    for l in range(top + 1):
-        for x in (prev, next):
-            x.padded(l, wh + 1, ww + 1, pts.dtype)
-    outs, sts = [], []
-    for s0 in range(0, B, per):
-        sl = slice(s0, min(B, s0 + per))
-        o, st = _lk_impl(prev.select(sl), next.select(sl), pts[sl], valid[sl],
-                         None if init_pts is None else init_pts[sl], opts, top)
-        outs.append(o)
-        sts.append(st)
-    return torch.cat(outs), torch.cat(sts)
+    per = _tuning.for_device(pts.device).lk_streams(B, N) if opts.early_exit else None
+    if not opts.early_exit:
+        out, status, overflow = _lk_static(prev, next, pts, valid, init_pts, opts, top, capped)
+    elif per is None:
+        out, status, overflow = _lk_impl(prev, next, pts, valid, init_pts, opts, top, return_overflow, capped)
+    else:
+        ww, wh = opts.win_size
+        for l in range(top + 1):
+            for x in (prev, next):
+                x.padded(l, wh + 1, ww + 1, pts.dtype)
+        outs, sts, ovfs = [], [], []
+        caps = None if capped is None else []
+        for s0 in range(0, B, per):
+            sl = slice(s0, min(B, s0 + per))
+            o, st, ov = _lk_impl(prev.select(sl), next.select(sl), pts[sl], valid[sl],
+                                 None if init_pts is None else init_pts[sl], opts, top, return_overflow, caps)
+            outs.append(o)
+            sts.append(st)
+            ovfs.append(ov)
+        out, status = torch.cat(outs), torch.cat(sts)
+        overflow = None if ovfs[0] is None else torch.cat(ovfs)
+        if capped is not None and caps:
+            capped.append(torch.cat(caps))
+    if not return_overflow:
+        return out, status
+    if overflow is None:
+        overflow = torch.zeros(B, dtype=torch.bool, device=pts.device)
+    return out, status, overflow
 
 
 def _forward_backward_impl(
@@ -774,18 +1164,175 @@ def _forward_backward_impl(
     fb_max_level: int,
     fb_threshold: float,
     fb_use_initial_flow: bool,
-) -> torch.Tensor:
+    return_overflow: bool = False,
+):
     """VINS-Fusion's FLOW_BACK check of a forward LK result, no input checks.
 
     Tracks ``out`` back from ``next`` to ``prev`` (lanes with ``status``; ``opts`` with
     ``max_level = fb_max_level``; starting at ``pts`` when ``fb_use_initial_flow``, else at ``out``)
     and returns ``status & back_status & (|back - pts| <= fb_threshold)`` ``(B, N)`` bool, the
-    distance in float64 pixels. ``pts``, ``out``: ``(B, N, 2)``; ``status``: ``(B, N)`` bool.
-    A discrete test: no gradient.
+    distance in float64 pixels; with ``return_overflow`` also the backward pass's ``(B,)`` overflow
+    flag (see :func:`_track_lk_impl`). ``pts``, ``out``: ``(B, N, 2)``; ``status``: ``(B, N)``
+    bool. A discrete test: no gradient.
     """
     with torch.no_grad():
         init = pts.detach() if fb_use_initial_flow else None
-        back, st_b = _track_lk_impl(next, prev, out.detach(), status, init,
-                                    dataclasses.replace(opts, max_level=fb_max_level))
-        err = torch.linalg.vector_norm((back - pts.detach()).double(), dim=-1)
-        return status & st_b & (err <= fb_threshold)
+        res = _track_lk_impl(next, prev, out.detach(), status, init, dataclasses.replace(opts, max_level=fb_max_level),
+                             return_overflow)
+        err = torch.linalg.vector_norm((res[0] - pts.detach()).double(), dim=-1)
+        ok = status & res[1] & (err <= fb_threshold)
+        return (ok, res[2]) if return_overflow else ok
+
+
+# ---------------------------------------------------------------------- implicit gradients
+def _wants_grad(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, init: torch.Tensor | None) -> bool:
+    """A gradient is being recorded and some input of level 0 (or the points) needs one."""
+    if not torch.is_grad_enabled():
+        return False
+    return pts.requires_grad or prev.levels[0].requires_grad or nxt.levels[0].requires_grad or (
+        init is not None and init.requires_grad)
+
+
+@functools.lru_cache(maxsize=32)
+def _patch_offsets(Wp: int, ww: int, wh: int, device) -> torch.Tensor:
+    """Flat offsets ``(wh + 1, ww + 2)`` of the bilinear patch of a window whose origin ``u`` is
+    addressed as in :class:`_Level` (padded rows/columns start at ``u + 1``)."""
+    dy, dx = torch.arange(wh + 1, device=device), torch.arange(ww + 2, device=device)
+    return dy[:, None] * Wp + dx[None, :] + (Wp + 1)
+
+
+def _newton_terms(lv: _Level, q: torch.Tensor, lane: torch.Tensor, iv: torch.Tensor, g: torch.Tensor, k: dict):
+    """The level's LK residual and its Jacobian at window origins ``q`` ``(2, m)`` (float bilinear,
+    differentiable w.r.t. ``q``, the next level and, through ``iv``/``g``, the previous one):
+    ``F = sum_x g(x) (32 J(q + x) - iv(x))`` ``(2, m)`` (the normal equations' right-hand side,
+    ``G delta = -F``) and ``A = dF/dq`` ``(2, 2, m)`` (``A[i, j] = sum_x g_i dJ/dq_j``; ``A = G``
+    under brightness constancy), plus the lanes whose window is inside ``[-win, size)``. Layout as
+    the iterations' (pitched, ``g`` zero on the junk column)."""
+    ww, wh = lv.ww, lv.wh
+    ip = torch.floor(q.detach())
+    u = ip + k["win"]
+    uc = torch.clamp(u, min=k["zero"], max=lv.spanm1)
+    inside = (uc == u).all(0)
+    base = (uc.long() * lv.jstr).sum(0) + lane
+    idx = base.view(-1, 1, 1) + _patch_offsets(lv.Wp, ww, wh, lv.Jp.device)
+    P = lv.Jp.index_select(0, idx.view(-1)).view(idx.shape).to(q.dtype)  # (m, wh + 1, ww + 2)
+    m = P.shape[0]
+
+    def flat(t):
+        return t.reshape(m, -1)
+
+    j00, j01 = flat(P[:, :wh, :ww + 1]), flat(P[:, :wh, 1:])
+    j10, j11 = flat(P[:, 1:, :ww + 1]), flat(P[:, 1:, 1:])
+    a, b = (q - ip).unsqueeze(-1).unbind(0)  # (m, 1) each
+    val = (1 - b) * ((1 - a) * j00 + a * j01) + b * ((1 - a) * j10 + a * j11)
+    da = (1 - b) * (j01 - j00) + b * (j11 - j10)
+    db = (1 - a) * (j10 - j00) + a * (j11 - j01)
+    F = (g * (32.0 * val - iv).unsqueeze(1)).sum(-1).t()  # (2, m)
+    A = (g.unsqueeze(2) * (32.0 * torch.stack((da, db), 1)).unsqueeze(1)).sum(-1)  # (m, 2, 2)
+    return F, A.permute(1, 2, 0), inside
+
+
+def _solve2(A: torch.Tensor, F: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """``A^-1 F`` for ``(2, 2, m)`` / ``(2, m)`` in closed form, 0 where not ``ok`` (the masked lanes'
+    inputs are replaced first, so that neither the value nor the gradient can be NaN there)."""
+    eye = torch.eye(2, dtype=A.dtype, device=A.device).unsqueeze(-1)
+    A = torch.where(ok, A, eye)
+    F = torch.where(ok, F, 0.0)
+    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    det = torch.where(ok, det, 1.0)
+    x0 = A[1, 1] * F[0] - A[0, 1] * F[1]
+    x1 = A[0, 0] * F[1] - A[1, 0] * F[0]
+    return torch.stack((x0, x1)) / det
+
+
+def _implicit_attach(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, out: torch.Tensor, mask: torch.Tensor,
+                     opts: LKOptions) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Attach the implicit-function gradient to a forward LK result (values unchanged).
+
+    At the converged level-0 solution ``y*`` the LK equations ``F(y*, theta) = 0`` hold (``F`` =
+    :func:`_newton_terms`' residual, ``theta`` = the points and both level-0 images), so
+    ``dy*/dtheta = -A^-1 dF/dtheta`` with ``A = dF/dy``: one 2x2 solve per point. It is realised as two
+    differentiable Newton steps from the detached solution, ``y1 = N(y*)``, ``y2 = N(y1)`` with
+    ``N(y) = y - A(y)^-1 F(y)``; the result is ``y* + (y2 - y2.detach())`` (value ``y*`` exactly).
+    One step gives the exact first derivative (``dN/dy = 0`` at a root of ``F``), the second the exact
+    second derivative (so that ``gradgradcheck`` holds), with the forward's residual (``|F|`` after
+    ``eps``-stopping and fixed-point rounding) as the only error.
+
+    Levels: only level 0 is differentiated. The root of level 0's equations does not depend on
+    where the iteration started, so the coarse levels and ``init_pts`` (which only pick the basin)
+    get no gradient. ``A`` is the true Jacobian (bilinear derivative of the next image), not the
+    Gauss-Newton ``G``, so the gradient is that of the converged solution.
+
+    Args:
+        prev, nxt: the pyramids (level 0 carries the image gradients).
+        pts: ``(B, N, 2)`` points in ``prev``; ``out``: ``(B, N, 2)`` the forward's result (detached).
+        mask: ``(B, N)`` bool, lanes to differentiate (status True, not capped at level 0).
+
+    Returns:
+        ``next_pts (B, N, 2)`` with the gradient attached, and the ``(B, N)`` lanes that received one
+        (``mask`` and well posed: window inside, ``det A >= 0.05 det G``, Newton step at the solution
+        <= 0.1 px); the others get an exactly zero gradient.
+    """
+    B, N, _ = pts.shape
+    M = B * N
+    dtype, dev = pts.dtype, pts.device
+    ww, wh = opts.win_size
+    k = _win_consts(ww, wh, dtype, dev)
+    half = k["half"]
+    H, W = nxt.levels[0].shape[-2:]
+    lv = _Level(prev.padded(0, wh + 1, ww + 1, dtype), nxt.padded(0, wh + 1, ww + 1, dtype), H, W, (ww, wh), dtype)
+    mask = mask.reshape(M)
+    p0 = torch.where(mask, pts.reshape(M, 2).t(), 0.0)  # masked lanes: finite, zero gradient
+    lanes = _lane_index(B, N, dev)
+    uc, frac, proc = _level_start(lv, p0, mask, 0, k)
+    ucl = torch.where(proc, uc, k["zero"]).long()
+    iv, g = _template(lv, ucl, frac, lanes, False, dtype, k, sync=False)
+    lane = lanes * lv.HWp
+    ystar = out.detach().reshape(M, 2).t()
+    if not ystar.is_floating_point() or ystar.dtype != dtype:
+        ystar = ystar.to(dtype)
+    q0 = torch.where(proc, ystar - half, 0.0)
+    with torch.no_grad():
+        # linearise at the root of the float equations: the forward stopped at |delta| <= eps (and
+        # solved the fixed-point equations in 8-bit mode); two Newton steps (true Jacobian) refine
+        # the point at which the derivatives are taken, not the returned value
+        gd = g.detach()
+        Gd = (gd.unsqueeze(2) * gd.unsqueeze(1)).sum(-1)  # (m, 2, 2)
+        detG = Gd[:, 0, 0] * Gd[:, 1, 1] - Gd[:, 0, 1] * Gd[:, 1, 0]
+        ok = proc & (detG > 0)
+        qr = q0
+        for it in range(_IMPLICIT_REFINE + 1):
+            Fd, Ad, inside = _newton_terms(lv, qr, lane, iv.detach(), gd, k)
+            detA = Ad[0, 0] * Ad[1, 1] - Ad[0, 1] * Ad[1, 0]
+            ok = ok & inside & (detA >= _IMPLICIT_MIN_DET_RATIO * detG)
+            step = _solve2(Ad, Fd, ok)
+            if it == 0:
+                ok = ok & (step.abs() <= _IMPLICIT_MAX_STEP).all(0)
+            if it < _IMPLICIT_REFINE:
+                qr = qr - torch.where(ok, step, 0.0)
+        ok = ok & ((qr - q0).abs() <= _IMPLICIT_MAX_STEP).all(0)
+        q0 = torch.where(ok, qr, q0)
+    F0, A0, _ = _newton_terms(lv, q0, lane, iv, g, k)
+    c1 = _solve2(A0, F0, ok)
+    q1 = q0 + (c1.detach() - c1)  # value q0, derivative of N(q0) = q0 - A^-1 F
+    F1, A1, _ = _newton_terms(lv, q1, lane, iv, g, k)
+    c2 = _solve2(A1, F1, ok)
+    corr = q1 - c2
+    corr = corr - corr.detach()  # exactly 0 (finite), the derivative of N(N(q0))
+    res = ystar + torch.where(ok, corr, 0.0)
+    return res.t().reshape(B, N, 2), ok.view(B, N)
+
+
+def _track_lk_implicit(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, valid: torch.Tensor,
+                       init: torch.Tensor | None, opts: LKOptions, return_overflow: bool):
+    """``_track_lk_impl`` with ``grad_mode="implicit"``: the forward without a graph (the same code,
+    so the same values), then :func:`_implicit_attach` on the lanes with status True that did not
+    hit level 0's iteration budget."""
+    capped: list = []
+    with torch.no_grad():
+        res = _track_lk_impl(prev, nxt, pts.detach(), valid, None if init is None else init.detach(),
+                             dataclasses.replace(opts, grad_mode="unrolled"), return_overflow, capped)
+    out, status = res[0], res[1]
+    cap = capped[0].view(status.shape) if capped else torch.zeros_like(status)
+    out, _ = _implicit_attach(prev, nxt, pts, out, status & ~cap, opts)
+    return (out, status) + tuple(res[2:])

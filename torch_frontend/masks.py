@@ -18,12 +18,14 @@ The disc is ``dx² + dy² <= radius²`` around the ``cvRound``-ed centre, which 
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Tuple, Union
 
 import torch
 
 from ._checks import check_points, check_shape, default_valid
-from .corners import _resolve_rounds
+from .corners import _iota, _resolve_fixed, _resolve_rounds, _upper
 from .errors import ConfigError
 
 __all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
@@ -112,7 +114,7 @@ def distance_mask(
 
 
 def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
-                        mask: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
+                        mask: torch.Tensor, *, capturable: bool = False, rounds: int | None = None) -> tuple:
     """:func:`distance_mask` without input checks.
 
     Args:
@@ -122,10 +124,18 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
         radius: disc radius in pixels, >= 0.
         mask: ``(B, H, W)`` uint8, the base mask (255 = free); written into and returned (pass a
             copy to keep it).
+        capturable: False: the conflicts are resolved in rounds until done (a host check each).
+            True: shape-static, no host syncs, a kernel count independent of B and of the data:
+            ``rounds`` rounds (default :data:`MASK_ROUNDS`), see :func:`_distance_mask_static`.
 
     Returns:
-        ``keep (B, N)`` bool and ``mask``, as :func:`distance_mask`.
+        ``keep (B, N)`` bool and ``mask``, as :func:`distance_mask`; with ``capturable`` also
+        ``overflow (B,)`` bool, True where the rounds left a decision open (elsewhere the result
+        equals the default path's).
     """
+    if capturable:
+        return _distance_mask_static(pts, priority, valid, float(radius), mask,
+                                     MASK_ROUNDS if rounds is None else int(rounds))
     B, N, _ = pts.shape
     H, W = mask.shape[-2:]
     dev = pts.device
@@ -167,13 +177,21 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
 
 
 def _span_half_widths(radius: float, device) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Row offsets ``dy`` of the disc ``dx² + dy² <= radius²`` and each row's half width (long)."""
+    """Row offsets ``dy`` of the disc ``dx² + dy² <= radius²`` and each row's half width (long):
+    device constants, computed once per radius and device (on the host: no sync per call)."""
+    return _span_table(float(radius), torch.device(device))
+
+
+@functools.lru_cache(maxsize=32)
+def _span_table(radius: float, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+    # built on the device without a boolean index (also traceable by torch.compile)
     r = int(radius)
     ax = torch.arange(-r - 1, r + 2, device=device)
     inside = (ax[:, None] * ax[:, None] + ax[None, :] * ax[None, :]).double() <= float(radius) ** 2
     n = inside.sum(1)  # dx count per row dy: 2 * hw + 1 (0 when the row is empty)
-    rows = n > 0
-    return ax[rows], (n[rows] - 1) // 2
+    # the non-empty rows are exactly |dy| <= r: dx = 0 is inside there (dy² <= r² <= radius²), and
+    # (r + 1)² > radius²
+    return ax[1:-1], (n[1:-1] - 1) // 2
 
 
 def _clear_discs(mask: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, keep: torch.Tensor,
@@ -202,6 +220,88 @@ def _clear_discs(mask: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, keep: t
     cover = diff[:dump].view(B, H, W).cumsum(-1, dtype=torch.uint8)
     # logical_not + a uint8 multiply: ~10x faster on CPU than a comparison and masked_fill_
     return mask.mul_(torch.logical_not(cover).view(torch.uint8))
+
+
+#: Conflict-resolution rounds of the capturable setMask (``capturable=True``). Measured through
+#: this kernel on the tracker's setMask calls (max_cnt 150, min_dist 30 / 25 / 20, mono and fusion
+#: trackers on EuRoC mini cam0 / cam1, V1_01 micro cam0 / cam1, the Middlebury pair and the
+#: synthetic flight; 762 calls, up to 150 features): rounds until every feature is decided,
+#: max 3 (574 calls need 1, 150 need 2, 5 need 3) -> 8 (4 kernels a round).
+MASK_ROUNDS = 8
+
+
+def _distance_mask_static(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
+                          mask: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_distance_mask_impl` with ``capturable=True``: the same rules and results, a fixed
+    op sequence.
+
+    The conflicts resolve in ``rounds`` rounds (:func:`~torch_frontend.corners._resolve_fixed`);
+    features the rounds leave undecided are not kept and set ``overflow``. The discs are
+    rasterised as row spans into a difference buffer with ``r`` spare rows above and below each
+    stream and one spare column, so that no span needs a bounds test (every index is in range).
+    Points that are not kept add 0.
+    """
+    B, N, _ = pts.shape
+    H, W = mask.shape[-2:]
+    dev = pts.device
+    if N == 0:
+        return torch.zeros(B, 0, dtype=torch.bool, device=dev), mask, torch.zeros(B, dtype=torch.bool, device=dev)
+    c = _mask_constants(B, H, W, float(radius), dev)
+
+    # visiting order: priority descending, ties by index (stable); invalid points last
+    key = torch.where(valid, priority.to(torch.float64), float("-inf"))
+    order = torch.sort(key, dim=1, descending=True, stable=True).indices
+    p = torch.gather(pts.detach(), 1, order[..., None].expand(B, N, 2))
+    v = torch.gather(valid, 1, order)
+    # cvRound; a non-finite coordinate -> -1 (outside; the other coordinate then does not matter)
+    rxy = torch.nan_to_num(torch.round(p), nan=-1.0, posinf=-1.0, neginf=-1.0).clamp_(-1.0, c.size_f).long()
+    cl = torch.minimum(rxy.clamp_min(0), c.size_m1)  # (B, N, 2) inside the image
+    eligible = (cl == rxy).all(-1)
+    eligible &= v
+    flat = (cl * c.stride).sum(-1)
+    eligible &= torch.gather(mask.reshape(B, H * W), 1, flat) == 255
+
+    # conflict [j, i] (j visited first, j's disc covers i's pixel), diagonal included
+    d = rxy[:, :, None] - rxy[:, None]
+    conf = (d * d).sum(-1) <= c.r2
+    conf &= _upper(N, dev)
+    keep_sorted, left = _resolve_fixed(conf, eligible, rounds)
+    keep = torch.zeros_like(keep_sorted).scatter_(1, order, keep_sorted)
+
+    # row spans of the kept discs: +1 at the start, -1 (255) after the end, one cumsum along x
+    x0 = (cl[..., 0, None] - c.hws).clamp_min_(0)
+    x1 = (cl[..., 0, None] + c.hws1).clamp_max_(W)
+    row = (cl[..., 1] + c.row_base)[..., None] + c.dys
+    row *= W + 1
+    inc = keep_sorted.to(torch.uint8)[..., None]  # 0 for the points not kept
+    diff = torch.zeros(B * (H + 2 * c.r) * (W + 1), dtype=torch.uint8, device=dev)
+    diff.index_put_((row + x0,), inc, accumulate=True)
+    diff.index_put_((row + x1,), inc * 255, accumulate=True)
+    cover = diff.view(B, H + 2 * c.r, W + 1)[:, c.r:c.r + H].cumsum(-1, dtype=torch.uint8)
+    mask.mul_(torch.logical_not(cover[..., :W]).view(torch.uint8))
+    return keep, mask, left.any(1)
+
+
+class _MaskConstants:
+    pass
+
+
+@functools.lru_cache(maxsize=32)
+def _mask_constants(B: int, H: int, W: int, radius: float, device: torch.device) -> _MaskConstants:
+    """Device constants of :func:`_distance_mask_static` (built once per sizes, radius, device)."""
+    c = _MaskConstants()
+    c.r = int(radius)
+    dys, hws = _span_table(radius, device)
+    c.dys = dys + c.r  # span rows in the padded buffer, relative to the centre row
+    c.hws = hws
+    c.hws1 = hws + 1
+    c.size_f = float(max(H, W))  # clamp before the long conversion (any value >= W, H is outside)
+    i2 = torch.arange(2, device=device)  # built on the device (no upload, traceable)
+    c.size_m1 = i2 * (H - W) + (W - 1)  # (W - 1, H - 1)
+    c.stride = i2 * (W - 1) + 1  # (1, W): flat index x + W y
+    c.r2 = int(min(math.floor(float(radius) ** 2), 1 << 62))  # integer d²: d² <= r²  <=>  d² <= floor(r²)
+    c.row_base = (_iota(B, device) * (H + 2 * c.r))[:, None]
+    return c
 
 
 def fisheye_mask(

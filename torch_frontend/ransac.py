@@ -38,6 +38,24 @@ of torch ops per round, so the first round is small (32 samples: with few outlie
 within it), both images share one gather / normalisation in the 7-point solver, and a problem's
 final mask is the one its best model was counted with (no re-scoring pass). Large batches are bound
 by scoring (float64, exact as OpenCV's double arithmetic).
+
+Capturable path (``capturable=True``; :func:`_find_fundamental_static`): shape-static, no host sync
+after a warm-up call, a kernel count (~300) independent of B and of the data, for CUDA graphs and
+``torch.compile``. The sample tables of every point count 8..N are built once and kept on the
+device; every problem evaluates one fixed block of ``max_iters`` samples (its OpenCV bookkeeping
+replayed with scans, so the same result; a smaller block reports ``overflow`` where OpenCV would
+have drawn more); the 7-point null space comes from Gram-Schmidt instead of a batched QR. Memory:
+~30 MB per problem of 150 points (float64 scores of 3000 models x 150 points); on the CPU it is
+~15x slower than the default path, which stays the CPU's choice.
+
+LO-RANSAC (``method="lo"``; :func:`_find_fundamental_lo`, :func:`_find_fundamental_lo_static`):
+the same hypotheses and inlier test, each model OpenCV's loop accepts locally optimised (weighted
+8-point refits), the adaptive bound from the optimised counts, a final refit. It keeps ~97 % of
+the true inliers where OpenCV keeps ~87 % and its F is ~4x closer to the truth
+(``benchmarks/results/fundamental_accuracy.md``). Its refits avoid the linalg ops that check
+errors on the host (inverse iteration with ``lu_factor_ex``/``lu_solve``) and the batched
+matmuls whose last bits depend on the batch, so a problem's result is the same in any batch, and
+the capturable variant (a fixed budget of optimised models) is sync-free as well.
 """
 
 from __future__ import annotations
@@ -52,6 +70,7 @@ import torch
 
 from . import _tuning
 from ._checks import check_points, check_shape, default_valid, gather_slots, valid_first_order
+from ._compiler import outside_graphs
 
 __all__ = ["FundamentalResult", "find_fundamental", "refit_fundamental", "ransac_update_num_iters"]
 
@@ -89,21 +108,32 @@ class FundamentalResult(_FundamentalPair):
         ok: ``(B,)`` bool, a model was found (OpenCV would return a non-empty F).
         num_iters: ``(B,)`` int64 number of minimal samples drawn for the problem.
         method: ``(B,)`` int8, 0 = none (< 8 valid points), 1 = LMedS (8..14), 2 = RANSAC (>= 15).
+        overflow: ``(B,)`` bool, the capturable path's hypothesis block was too small for OpenCV's
+            exact answer (it would have drawn more samples); the problem's other fields are then
+            not OpenCV's. Always False on the default path and with the default block.
     """
 
     ok: torch.Tensor
     num_iters: torch.Tensor
     method: torch.Tensor
 
-    def __new__(cls, F, inliers, ok, num_iters, method):
+    def __new__(cls, F, inliers, ok, num_iters, method, overflow=None):
         self = super().__new__(cls, F, inliers)
         self.ok = ok
         self.num_iters = num_iters
         self.method = method
+        self._overflow = overflow
         return self
 
+    @property
+    def overflow(self) -> torch.Tensor:
+        # made on first use: the default path (never overflows) does not pay a kernel for it
+        if self._overflow is None:
+            self._overflow = torch.zeros_like(self.ok)
+        return self._overflow
+
     def __reduce__(self):
-        return (FundamentalResult, (self.F, self.inliers, self.ok, self.num_iters, self.method))
+        return (FundamentalResult, (self.F, self.inliers, self.ok, self.num_iters, self.method, self._overflow))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -421,7 +451,7 @@ def _solve_cubic(c: torch.Tensor):
     return torch.where(ok, roots, torch.zeros_like(roots)), ok
 
 
-def _solve_cubic_opencv(c: torch.Tensor):
+def _solve_cubic_opencv(c: torch.Tensor, *, full: bool = False, phases: torch.Tensor | None = None):
     """Real roots of ``c[...,0] x^3 + c[...,1] x^2 + c[...,2] x + c[...,3]`` as ``cv::solveCubic``
     finds them (its form in OpenCV 4.14: coefficients scaled by their largest magnitude, expanded
     discriminant): the same number, in the same order, by the same formulas (float64, batched, no
@@ -446,6 +476,9 @@ def _solve_cubic_opencv(c: torch.Tensor):
     keeps (OpenCV: the first). No Newton polish (OpenCV's models come from these very formulas);
     where OpenCV's formulas give NaN (an ``acos`` argument past 1 by rounding) the root is not ok.
     Unlike :func:`_solve_cubic`, lanes of branches not taken may hold NaN (no gradients here).
+
+    ``full``: evaluate the rare branches always (no host check; the capturable path); ``phases``:
+    :data:`_CUBIC_PHASES` already on ``c``'s device and dtype (no upload per call).
     """
     mc = c.abs().amax(-1)
     c0, c1, c2, c3 = c.unbind(-1)
@@ -464,8 +497,9 @@ def _solve_cubic_opencv(c: torch.Tensor):
     t2 = a1 * (1.0 / 3.0)
     # d > 0: trigonometric form
     theta = torch.acos(R / torch.sqrt(Q * Q * Q))
-    x3 = (-2.0 * torch.sqrt(Q))[..., None] * torch.cos((theta * (1.0 / 3.0))[..., None]
-                                                        + _CUBIC_PHASES.to(c.device, c.dtype)) - t2[..., None]
+    if phases is None:
+        phases = _CUBIC_PHASES.to(c.device, c.dtype)
+    x3 = (-2.0 * torch.sqrt(Q))[..., None] * torch.cos((theta * (1.0 / 3.0))[..., None] + phases) - t2[..., None]
     # d < 0: one root
     e = (torch.sqrt(-d) + R.abs()).pow(1.0 / 3.0)
     e = torch.where(R > 0, -e, e)
@@ -475,7 +509,7 @@ def _solve_cubic_opencv(c: torch.Tensor):
     # rare branches (a double root, a negligible c0): on the CPU skipped when no lane needs them
     # (a free check there; elsewhere it would be a host sync)
     dbl = cubic & (d == 0)
-    if not _tuning.for_device(c.device).host_checks_free or bool((dbl | ~cubic).any()):
+    if full or not _tuning.for_device(c.device).host_checks_free or bool((dbl | ~cubic).any()):
         no = torch.zeros_like(cubic)
         cr = _cbrt(R)
         a13 = a1 / 3.0
@@ -873,6 +907,8 @@ def find_fundamental(
     generator: torch.Generator | None = None,
     batch_hypotheses: int | None = None,
     seed: Union[None, int, Sequence[int], torch.Tensor] = None,
+    capturable: bool = False,
+    method: str = "opencv",
 ) -> FundamentalResult:
     """Robust fundamental matrices for B point-set pairs at once (``cv2.findFundamentalMat`` with
     ``FM_RANSAC``, batched).
@@ -895,6 +931,14 @@ def find_fundamental(
             ``-1`` is ``(uint64)-1``; 0 is mapped to it as well; takes precedence over
             ``generator``). Default (neither given), 0 or -1: OpenCV's own seed for every problem,
             so the masks reproduce cv2's.
+        capturable: shape-static and free of host syncs after a first call with the same seeds,
+            N, ``max_iters`` and ``confidence`` (CUDA graphs, ``torch.compile``): every problem
+            evaluates a fixed block of ``batch_hypotheses`` samples (default and at most
+            ``max_iters``: exact); the result is the default path's (``F`` up to rounding)
+            wherever ``overflow`` is False. Memory ~30 MB per problem of 150 points at the
+            default block.
+        method: ``"opencv"`` (default): OpenCV's FM_RANSAC exactly, the convention below.
+            ``"lo"``: LO-RANSAC on the same hypotheses, see "LO-RANSAC" below.
 
     Returns:
         :class:`FundamentalResult` ``(F, inliers)`` with extra attributes ``ok``, ``num_iters``,
@@ -929,6 +973,30 @@ def find_fundamental(
         One host sync per round (loop control and sample tables; a second one in large rounds,
         which score real roots only) plus one at the start (per-problem counts).
 
+    LO-RANSAC (``method="lo"``, n >= 15; 8..14 points get the LMedS result above):
+        * Hypotheses, their order and the inlier test are OpenCV's (the same samples, 7-point
+          models and ``max(d1^2, d2^2) <= threshold^2``). OpenCV's loop is replayed, but every
+          model it accepts (more inliers than the current best, at least 7) is locally optimised:
+          3 iteratively reweighted 8-point refits on its inliers (unit weights, then Sampson
+          weights; Hartley-normalised over all valid points; the last one rank 2, kept if it has
+          at least as many inliers as the hypothesis), each re-scored for the next refit's inliers.
+        * The optimised inlier count is the new best: later hypotheses must beat it, and the
+          iteration bound is OpenCV's ``RANSACUpdateNumIters(confidence, (n - count) / n, 7,
+          bound)`` with it (LO counts are higher, so the loop stops earlier than OpenCV's).
+        * Final refit, on the points as given and the best model's inliers, Sampson-weighted: an
+          8-point refit (``refit_fundamental``'s normalisation and rank-2 rule), then one with its
+          epipole held fixed (rank 2 without a projection: Hartley & Zisserman's algebraic
+          minimisation); ``F`` is it and ``inliers`` its inliers (OpenCV's test) unless it has
+          fewer inliers than the best optimised model (degenerate data), which is then kept. ``F``
+          is differentiable w.r.t. ``p1, p2`` through the final refit (mask and the weights' model
+          held fixed).
+        * ``capturable``: a fixed budget of 4 optimised models per problem in OpenCV's order plus
+          one more (the best remaining hypothesis); ``overflow`` where OpenCV's loop would have
+          accepted another model or drawn past the block. Elsewhere the result is the default
+          path's (masks, ``ok``, ``num_iters``, ``method`` exactly, ``F`` up to rounding).
+        * Memory and speed: as the OpenCV path (the loop stops earlier, and each accepted model
+          costs a local optimisation; ``benchmarks/bench_fundamental_accuracy.py``).
+
     Seeding rule:
         Sample g of problem b is the g-th 7-subset OpenCV's ``getSubset`` would draw with
         ``cv::RNG(seed_b)`` from the n_b valid points in slot order. It depends only on (seed_b,
@@ -945,8 +1013,11 @@ def find_fundamental(
     H = None if batch_hypotheses is None else int(batch_hypotheses)
     if H is not None and H < 1:
         raise ValueError(f"batch_hypotheses: expected >= 1, got {batch_hypotheses}")
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     states = _seeds(valid.shape[0], generator, seed)
-    return _find_fundamental_impl(p1, p2, valid, float(threshold), float(confidence), max_iters, states, H)
+    return _find_fundamental_impl(p1, p2, valid, float(threshold), float(confidence), max_iters, states, H,
+                                  capturable=capturable, method=method)
 
 
 def opencv_threshold_confidence(threshold: float, confidence: float) -> Tuple[float, float]:
@@ -968,6 +1039,9 @@ def _find_fundamental_impl(
     max_iters: int,
     states: Sequence[int],
     batch_hypotheses: int | None,
+    *,
+    capturable: bool = False,
+    method: str = "opencv",
 ) -> FundamentalResult:
     """:func:`find_fundamental` without input checks.
 
@@ -978,11 +1052,25 @@ def _find_fundamental_impl(
         confidence: in ``(0, 1)`` (the public function maps other values to 0.99).
         max_iters: cap on minimal samples per problem.
         states: B ``cv::RNG`` states as Python ints (:func:`_seeds`).
-        batch_hypotheses: largest round (>= 1), or None for the memory budget.
+        batch_hypotheses: largest round (>= 1), or None for the memory budget. With
+            ``capturable``: the block of minimal samples per problem (None: ``max_iters``, exact).
+        capturable: the shape-static, host-sync-free path (:func:`_find_fundamental_static`): the
+            same ``F`` (up to rounding), ``inliers``, ``ok``, ``num_iters`` and ``method`` wherever
+            its ``overflow`` is False.
+        method: ``"opencv"`` (OpenCV's FM_RANSAC, exactly) or ``"lo"`` (LO-RANSAC, see
+            :func:`find_fundamental`; :func:`_find_fundamental_lo` and, with ``capturable``,
+            :func:`_find_fundamental_lo_static`).
 
     Returns:
         :class:`FundamentalResult`, as :func:`find_fundamental`.
     """
+    if method != "opencv":
+        if method != "lo":
+            raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+        lo = _find_fundamental_lo_static if capturable else _find_fundamental_lo
+        return lo(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses)
+    if capturable:
+        return _find_fundamental_static(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses)
     B, N = valid.shape
     dev, out_dtype = p1.device, p1.dtype
     H = batch_hypotheses
@@ -1028,6 +1116,479 @@ def _find_fundamental_impl(
 
 
 # ----------------------------------------------------------------------------------------------
+# the capturable path: one static block of hypotheses per problem, no host syncs
+# ----------------------------------------------------------------------------------------------
+#: The capturable path scores the block's RANSAC models in this many pieces (a fixed number, so
+#: the kernel count does not depend on B). Memory knob only: measured at N = 150, K = 1000 (CPU,
+#: peak per problem): 1 piece 28 MB, 297 kernels; 4 pieces 14 MB, 326 kernels.
+_STATIC_SCORE_CHUNKS = 1
+_STATIC_CACHE: dict = {}  # (states, N, K, max_iters, confidence, device) -> _StaticTables
+_STATIC_CACHE_SIZE = 8  # a tracker needs one entry; first in, first out beyond this
+_STATE_SAMPLES: dict = {}  # (state, N, K) -> (N - 7, K, 7) int64 numpy: one state's sample tables
+_STATE_SAMPLES_SIZE = 16  # host memory: 8 MB each for N = 150, K = 1000; first in, first out
+_STATIC_CONSTS: dict = {}  # device -> _StaticConsts
+_LMEDS_ITERS: dict = {}  # (confidence, max_iters) -> int
+
+
+class _StaticTables(NamedTuple):
+    """Device tables of one capturable configuration (see :func:`_static_tables`)."""
+
+    idx: torch.Tensor  # (S * (N - 7), K, 7) int64: the first K subsets of (state s, n) at row s * (N - 7) + n - 8
+    state_row: torch.Tensor | None  # (B,) int64: s * (N - 7) for each problem's state; None when S == 1
+    niters: torch.Tensor  # (N + 1, N + 2) int64: the iteration bound with best count b at n points, [n, b + 1]
+    per_n: torch.Tensor  # (N + 1, 4) int64 per point count n: table row, n (N + 2) + 1, median rank, method
+    sigma: torch.Tensor  # (N + 1,) float64: LMedS's 2.5 * 1.4826 * (1 + 5 / max(n - 7, 1))
+    ar1: torch.Tensor  # (K,) int64: 1, 2, ..., K (samples drawn after each sample of the block)
+    block: torch.Tensor  # () int64: K
+
+
+class _StaticConsts(NamedTuple):
+    """Small device constants of the capturable path (see :func:`_static_consts`)."""
+
+    null_rows: torch.Tensor  # (2, 9): OpenCV's SVD completion vectors r7, r8 (_opencv_null_seeds)
+    basis: torch.Tensor  # (2, 2): [u; w] -> [u - w; w], i.e. [f1 - f2; f2]
+    cubic_scale: torch.Tensor  # (4,): <cof F_p, F_q> -> cubic coefficients (det F = <cof F, F> / 3)
+    phases: torch.Tensor  # (3,): _CUBIC_PHASES
+    select: torch.Tensor  # (9, 45): a row-major F -> its 5 scoring rows (_score_rows)
+    eye23: torch.Tensor  # (2, 3): the s-part of rows 0, 1 of a normalisation's T^T
+    one: torch.Tensor  # () float64 1 (0-dim operands of torch.where: no scalar_tensor launch)
+    zero: torch.Tensor  # () float64 0
+    inf: torch.Tensor  # () float64 inf
+    nan: torch.Tensor  # () float64 nan
+    minus_one: torch.Tensor  # () int32 -1
+
+
+def _static_consts(device: torch.device) -> _StaticConsts:
+    """The capturable path's constants on ``device``, uploaded once. (The caches of this path are
+    plain dicts read without a lock, their builders kept out of ``torch.compile`` graphs: a
+    steady-state call traces to dict look-ups, with no graph break.)"""
+    k = _STATIC_CONSTS.get(device)
+    return _build_static_consts(device) if k is None else k
+
+
+@outside_graphs
+def _build_static_consts(device: torch.device) -> _StaticConsts:
+    """:func:`_static_consts`' cache miss (outside compiled graphs)."""
+    f64 = dict(dtype=torch.float64, device=device)
+    # scoring rows (see _score_rows): with o = h2 (x) h1 (entry 3 i + j) the outer product of a
+    # point pair, x2^T F x1 = sum_q o_q F_q; (F x1)_r = sum_j o_{6 + j} F_{3 r + j} (h2_2 = 1 at a
+    # valid point); (F^T x2)_c = sum_i o_{3 i + 2} F_{3 i + c} (h1_2 = 1)
+    sel = torch.zeros(9, 5, 9, dtype=torch.float64)
+    for q in range(9):
+        sel[q, 0, q] = 1.0
+    for r in range(2):
+        for j in range(3):
+            sel[3 * r + j, 1 + r, 6 + j] = 1.0
+    for c in range(2):
+        for i in range(3):
+            sel[3 * i + c, 3 + c, 3 * i + 2] = 1.0
+    scalar = dict(device=device)
+    k = _StaticConsts(
+        null_rows=_OPENCV_NULL_SEEDS.T.contiguous().to(device),
+        basis=torch.tensor([[1.0, -1.0], [0.0, 1.0]], **f64),
+        cubic_scale=torch.tensor([1.0 / 3.0, 1.0, 1.0, 1.0 / 3.0], **f64),
+        phases=_CUBIC_PHASES.to(device),
+        select=sel.view(9, 45).to(device),
+        eye23=torch.eye(2, 3, **f64),
+        one=torch.tensor(1.0, **f64),
+        zero=torch.tensor(0.0, **f64),
+        inf=torch.tensor(math.inf, **f64),
+        nan=torch.tensor(math.nan, **f64),
+        minus_one=torch.tensor(-1, dtype=torch.int32, **scalar),
+    )
+    with _STREAM_LOCK:
+        return _STATIC_CONSTS.setdefault(device, k)
+
+
+def _static_tables(states: Sequence[int], N: int, K: int, max_iters: int, confidence: float,
+                   device: torch.device) -> _StaticTables:
+    """OpenCV's samples and iteration bounds for a capturable call, on ``device``: the first ``K``
+    subsets of the sample stream of every point count ``n`` in ``[8, N]`` and every distinct state
+    of ``states``, and ``RANSACUpdateNumIters`` for every ``(n, best count)``. Built once (on the
+    host, under the stream lock) and cached per ``(states, N, K, max_iters, confidence, device)``;
+    a steady-state call is a dict look-up (no lock, no upload). The tracker passes one state for
+    all problems (OpenCV re-seeds identically on every call), so the tables depend on n only."""
+    key = (tuple(states), N, K, max_iters, confidence, device)
+    tab = _STATIC_CACHE.get(key)
+    return _build_static_tables(key) if tab is None else tab
+
+
+@outside_graphs
+def _build_static_tables(key) -> _StaticTables:
+    """:func:`_static_tables`' cache miss (outside compiled graphs; under the stream lock)."""
+    states, N, K, max_iters, confidence, device = key
+    with _STREAM_LOCK:
+        tab = _STATIC_CACHE.get(key)
+        if tab is not None:
+            return tab
+        uniq = list(dict.fromkeys(states)) or [_state_of(OPENCV_SEED)]  # (B = 0: any table)
+        rows = N - _MODEL_POINTS  # n = 8 .. N
+        idx = np.stack([_state_samples(st, N, K) for st in uniq])
+        state_row = None
+        if len(uniq) > 1:
+            pos = {st: s * rows for s, st in enumerate(uniq)}
+            state_row = torch.tensor([pos[st] for st in states], dtype=torch.int64, device=device)
+        niters = _niters_table(N, max_iters, confidence)
+        ns = torch.arange(N + 1, dtype=torch.int64)
+        per_n = torch.stack([
+            (ns - _MIN_POINTS).clamp(0, N - _MIN_POINTS),  # the table row (before the state offset)
+            ns * (N + 2) + 1,  # + best count = the index into niters
+            (ns // 2).clamp(max=min(N, _MIN_RANSAC_POINTS - 1) - 1),  # LMedS: OpenCV's upper median
+            (ns >= _MIN_POINTS).to(torch.int64) + (ns >= _MIN_RANSAC_POINTS).to(torch.int64),  # METHOD_*
+        ], -1)
+        # _robust_group's very expression (so the same float64 values)
+        sigma = 2.5 * 1.4826 * (1.0 + 5.0 / (ns - _MODEL_POINTS).clamp_min(1).to(torch.float64))
+        tab = _StaticTables(
+            idx=torch.from_numpy(idx.reshape(-1, K, _MODEL_POINTS)).to(device),
+            state_row=state_row,
+            niters=niters.to(device),
+            per_n=per_n.to(device),
+            sigma=sigma.to(device),
+            ar1=torch.arange(1, K + 1, dtype=torch.int64, device=device),
+            block=torch.tensor(K, dtype=torch.int64, device=device),
+        )
+        while len(_STATIC_CACHE) >= _STATIC_CACHE_SIZE:
+            _STATIC_CACHE.pop(next(iter(_STATIC_CACHE)))
+        _STATIC_CACHE[key] = tab
+        return tab
+
+
+def _niters_table(N: int, max_iters: int, confidence: float) -> torch.Tensor:
+    """OpenCV's iteration bound for every point count and best inlier count, ``(N + 1, N + 2)``
+    int64 on the host: entry ``[n, b + 1]`` is the bound after a sample whose running best count is
+    b (-1: no model yet): max_iters unless b > 6 (OpenCV: goodCount > max(maxGoodCount,
+    modelPoints - 1)), else ``RANSACUpdateNumIters(conf, (n - b) / n, 7, bound)``. With one cap
+    (max_iters) instead of the running bound: the same integers, as the bound only shrinks (see
+    _robust_group, whose ep expression this is, so the values are its own)."""
+    cap = max(int(max_iters), 1)
+    nf = torch.arange(N + 1, dtype=torch.float64)[:, None]
+    b = torch.arange(-1, N + 1, dtype=torch.float64)[None, :]
+    it = ransac_update_num_iters(confidence, (nf - b) / nf, _MODEL_POINTS,  # (n = 0: unused garbage)
+                                 torch.full((N + 1, N + 2), cap, dtype=torch.int64))
+    return torch.where(b > _MODEL_POINTS - 1, it, cap)
+
+
+def _state_samples(state: int, N: int, K: int) -> np.ndarray:
+    """The first ``K`` subsets of ``cv::RNG(state)``'s stream for every n in ``[8, N]``, ``(N - 7,
+    K, 7)`` int64 (host; cached, so calls of different B with one state share the ~5 ms per n of
+    generation). Called under ``_STREAM_LOCK``."""
+    key = (state, N, K)
+    tab = _STATE_SAMPLES.get(key)
+    if tab is None:
+        tab = np.empty((N - _MODEL_POINTS, K, _MODEL_POINTS), dtype=np.int64)
+        for r in range(N - _MODEL_POINTS):  # not through _SUBSET_CACHE: each stream is read once
+            tab[r] = _SubsetStream(state, r + _MIN_POINTS).upto(K)[:K]
+        while len(_STATE_SAMPLES) >= _STATE_SAMPLES_SIZE:
+            _STATE_SAMPLES.pop(next(iter(_STATE_SAMPLES)))
+        _STATE_SAMPLES[key] = tab
+    return tab
+
+
+def _lmeds_iters(confidence: float, max_iters: int) -> int:
+    """OpenCV's LMedS sample count ``max(3, RANSACUpdateNumIters(confidence, 0.45, 7, max_iters))``
+    as ``_robust_group`` computes it (cached: no host tensors per capturable call)."""
+    it = _LMEDS_ITERS.get((confidence, max_iters))
+    return _build_lmeds_iters(confidence, max_iters) if it is None else it
+
+
+@outside_graphs
+def _build_lmeds_iters(confidence: float, max_iters: int) -> int:
+    """:func:`_lmeds_iters`' cache miss (outside compiled graphs)."""
+    it0 = ransac_update_num_iters(
+        confidence, torch.tensor(_LMEDS_OUTLIER_RATIO), _MODEL_POINTS, torch.tensor(max(int(max_iters), 1))
+    )
+    return _LMEDS_ITERS.setdefault((confidence, max_iters), max(int(it0), 3))
+
+
+def _solve_cubic_static(c: torch.Tensor, k: _StaticConsts):
+    """:func:`_solve_cubic_opencv` (every branch) in fewer kernels, for the capturable path: the
+    same operations on every value it returns, so the same ``ok`` and, where ok, the same roots bit
+    for bit; roots where not ok are garbage (not zero). ``c (M, 4)`` float64."""
+    ac = c.abs()
+    mc = ac.amax(-1)
+    big = (ac >= (_DBL_EPSILON * mc)[:, None]) & (mc >= _DBL_EPSILON)[:, None]  # |c_k| >= eps m, m >= eps
+    cubic = big[:, 0]
+    cs = c * mc.reciprocal()[:, None]  # x.reciprocal() == 1.0 / x: the same bits
+    a1, a2, a3 = (cs[:, 1:] * cs[:, 0].reciprocal()[:, None]).unbind(-1)
+    a11 = a1 * a1
+    Q = (a11 - 3.0 * a2) * (1.0 / 9.0)
+    a3_27 = 27.0 * a3
+    R = (a1 * (2.0 * a1 * a1 - 9.0 * a2) + a3_27) * (1.0 / 54.0)
+    two_a2 = 2.0 * a2
+    d = (a11 * (a2 * a2 - 4.0 * a1 * a3) + two_a2 * (9.0 * a1 * a3 - two_a2 * a2) - a3_27 * a3) * (1.0 / 108.0)
+    three = cubic & (d > 0)
+    dbl = cubic & (d == 0)
+    t2 = a1 * (1.0 / 3.0)
+    theta = torch.acos(R / torch.sqrt(Q * Q * Q))
+    x3 = (-2.0 * torch.sqrt(Q))[:, None] * torch.cos((theta * (1.0 / 3.0))[:, None] + k.phases) - t2[:, None]
+    aR = R.abs()
+    e = (torch.sqrt(-d) + aR).pow(1.0 / 3.0)
+    e = torch.where(R > 0, -e, e)
+    cr = torch.sign(R) * aR.pow(1.0 / 3.0)  # _cbrt(R)
+    a13 = a1 / 3.0
+    y0, y1 = -2.0 * cr - a13, cr - a13
+    roots = torch.where(three[:, None], x3, torch.stack([torch.where(dbl, y0, (e + Q / e) - t2), y1, y1], -1))
+    ok = torch.stack([cubic, three | (dbl & (y0 != y1)), three], -1)
+    # negligible c0: the quadratic of the unscaled coefficients, or the linear root
+    c1, c2, c3 = c[:, 1], c[:, 2], c[:, 3]
+    quad = big[:, 1] & ~cubic
+    lin = big[:, 2] & ~(cubic | big[:, 1])
+    qd = c2 * c2 - 4.0 * c1 * c3
+    sqd = torch.sqrt(qd)
+    q1 = (-c2 + sqd) * 0.5
+    q2 = (c2 + sqd) * -0.5
+    q = torch.where(q1.abs() > q2.abs(), q1, q2)
+    qroots = torch.stack([torch.where(quad, q / c1, -c3 / c2), c3 / q, q], -1)
+    qok = torch.stack([torch.where(quad, qd >= 0, lin), quad & (qd > 0), cubic], -1)
+    roots = torch.where(cubic[:, None], roots, qroots)
+    return roots, torch.where(cubic[:, None], ok, qok) & (roots.abs() < math.inf)
+
+
+def _run_7point_static(m: torch.Tensor, k: _StaticConsts):
+    """:func:`_run_7point` without a factorisation: ``m (M, 7, 2, 2)`` float64 -> ``F (M, 3, 9)``
+    (row-major, unit Frobenius norm; garbage where not ok) and ``ok (M, 3)`` (a real root, a usable
+    normalisation, a finite model, the sample not degenerate), in OpenCV's model order.
+
+    The same models as :func:`_run_7point` up to rounding: the same normalisation and 7x9 system
+    (bit for bit) and collinearity test; OpenCV's null-space basis (``f1 ~ P r7``, ``f2`` the unit
+    vector of ``P r8`` orthogonal to ``f1``, P the projection onto the null space) from modified
+    Gram-Schmidt on the rows ``[A; r7; r8]`` (7 fixed steps of three batched ops and one
+    re-orthogonalisation; what is left of r7 and r8 is ``P r7`` and ``P r8``) instead of a complete
+    QR, which loops per matrix on CUDA; the cubic's coefficients ``<cof F_p, F_q>`` of
+    both basis models in one matmul; its roots :func:`_solve_cubic_opencv`'s (every branch
+    evaluated, no host check: :func:`_solve_cubic_static`).
+    """
+    M = m.shape[0]
+    degenerate = _collinear_last(m).any(-1)
+    c = m.mean(1, keepdim=True)  # (M, 1, 2, 2)
+    dm = m - c
+    s = dm.norm(dim=-1).mean(1)  # (M, 2)
+    good = (s >= _FLT_EPSILON).all(-1)
+    s = math.sqrt(2.0) / torch.where(good[:, None], s, k.one)
+    nm = dm * s[:, None, :, None]
+    h = torch.nn.functional.pad(nm, (0, 1), value=1.0)  # (M, 7, image, 3)
+    A = (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)  # (M, 7, 9): _epipolar_rows' order
+    R = torch.cat([A, k.null_rows.expand(M, 2, 9)], 1)  # (M, 9, 9)
+    qs = []
+    for _ in range(_MODEL_POINTS):  # modified Gram-Schmidt: remove row 0 from the rows below it
+        g = R @ R[:, :1].transpose(-1, -2)  # (M, rows, 1): <r_0, r_i>
+        qs.append(R[:, 0])
+        R = torch.baddbmm(R[:, 1:], g[:, 1:] / g[:, :1], R[:, :1], alpha=-1.0)
+    # one more (classical) projection against the orthogonalised rows ("twice is enough"): the
+    # residual |A P r| drops from ~eps cond(A) |A| |r| (1e-12 on tracker-like samples) to ~eps
+    Qr = torch.stack(qs, 1)  # (M, 7, 9)
+    R = torch.baddbmm(R, (R @ Qr.transpose(-1, -2)) / (Qr * Qr).sum(-1)[:, None], Qr, alpha=-1.0)
+    # R = [P r7; P r8]: u ~ P r7, w the part of P r8 orthogonal to u, both unit
+    G = R @ R.transpose(-1, -2)  # (M, 2, 2)
+    w = torch.addcmul(R[:, 1], R[:, 0], (G[:, 1, 0] / G[:, 0, 0])[:, None], value=-1.0)
+    uw = torch.stack([R[:, 0], w], 1)
+    uw = uw / uw.norm(dim=-1, keepdim=True)
+    Fab = k.basis @ uw  # (M, 2, 9): Fa = u - w = f1 - f2, Fb = w = f2; F(alpha) = alpha Fa + Fb
+    F3 = Fab.view(M, 2, 3, 3)
+    cof = torch.linalg.cross(F3.roll(-1, -2), F3.roll(-2, -2), dim=-1)  # rows r1 x r2, r2 x r0, r0 x r1
+    # det(alpha Fa + Fb) = alpha^3 det Fa + alpha^2 <cof Fa, Fb> + alpha <cof Fb, Fa> + det Fb
+    coeffs = (cof.view(M, 2, 9) @ Fab.transpose(-1, -2)).view(M, 4) * k.cubic_scale
+    roots, rok = _solve_cubic_static(coeffs, k)  # (M, 3), OpenCV's order
+    Fn = torch.addcmul(Fab[:, 1:], roots[..., None], Fab[:, :1])  # (M, 3, 9)
+    # de-normalise: F = T2^T Fn T1, i.e. vec(F) = (T2^T (x) T1^T) vec(Fn), with T^T = [[s, 0, 0],
+    # [0, s, 0], [-s cx, -s cy, 1]] per image
+    top = s[..., None, None] * k.eye23  # (M, 2, 2, 3)
+    bot = torch.nn.functional.pad(c[:, 0] * -s[..., None], (0, 1), value=1.0)  # (M, 2, 3)
+    Tt = torch.cat([top, bot[:, :, None]], 2)  # (M, image, 3, 3)
+    kron = (Tt[:, 1, :, None, :, None] * Tt[:, 0, None, :, None, :]).view(M, 9, 9)
+    F = Fn @ kron.transpose(-1, -2)  # (M, 3, 9)
+    nrm = F.norm(dim=-1)  # (M, 3)
+    # _run_7point's nrm > 0 holds: alpha Fa + Fb = alpha u + (1 - alpha) w != 0 (u, w orthonormal)
+    ok = rok & (good & ~degenerate)[:, None] & (nrm < math.inf)
+    return F / nrm[..., None], ok
+
+
+def _score_rows(F: torch.Tensor, k: _StaticConsts) -> torch.Tensor:
+    """``F (B, K, 9)`` row-major models -> ``(B, 5, K, 9)`` rows mapping a point pair's outer product
+    ``h2 (x) h1`` to ``x2^T F x1, (F x1)_0, (F x1)_1, (F^T x2)_0, (F^T x2)_1`` (a 0/1 selection: exact),
+    so that one batched matmul scores every model on every point (five planes: contiguous passes)."""
+    B, K = F.shape[:2]
+    return (F.reshape(B * K, 9) @ k.select).view(B, K, 5, 9).transpose(1, 2).contiguous()
+
+
+def _score_terms(rows: torch.Tensor, outer: torch.Tensor):
+    """``rows (B, 5, K, 9)`` (:func:`_score_rows`, or a slice of it) on ``outer (B, N, 9)`` ->
+    ``d2 = (x2^T F x1)^2`` and ``smin = min(|(F x1)_xy|^2, |(F^T x2)_xy|^2)`` (``_epipolar_terms``'),
+    each ``(B, K, N)``; both 0 at masked-out slots (their outer product is 0)."""
+    B, _, K = rows.shape[:3]
+    o = torch.bmm(rows.reshape(B, 5 * K, 9), outer.transpose(1, 2))
+    o = o.mul_(o).view(B, 5, K, outer.shape[1])
+    l2 = o[:, 1] + o[:, 2]
+    return o[:, 0], torch.minimum(o[:, 3] + o[:, 4], l2, out=l2)
+
+
+def _canonical_sign_unit(F: torch.Tensor) -> torch.Tensor:
+    """:func:`_canonical_sign` of unit-norm ``F (B, 9)``: the sign only (3 kernels fewer)."""
+    return F * F.gather(-1, F.abs().argmax(-1, keepdim=True)).sign()
+
+
+def _find_fundamental_static(p1, p2, valid, threshold, confidence, max_iters, states, block):
+    """:func:`_find_fundamental_impl` with ``capturable=True``: static shapes, no host syncs after a
+    warm-up call with the same ``(states, N, max_iters, confidence, block)``, a kernel count
+    independent of B and of the data.
+
+    Every problem takes the first ``K`` samples of its OpenCV stream (``K = block``; default and at
+    most ``max_iters``, which is exact) from one table look-up (:func:`_static_tables`, for both
+    methods) and all are solved in one batched 7-point call. RANSAC scores the ``3 K`` models on
+    all points (``_STATIC_SCORE_CHUNKS`` batched matmuls) and replays OpenCV's loop with scans over
+    the block: the running best count (``cummax``), the iteration bound after every sample (a table
+    look-up), the first sample that reaches its bound, the first strictly better model up to it.
+    That is ``_robust_group`` in one round, hence its result. LMedS scores the first ``min(K, L)``
+    samples (``L = _lmeds_iters``, 300 for VINS) on the first 14 valid points (all of an 8..14
+    point problem's). Both branches run on the whole batch; ``torch.where`` picks by point count.
+
+    ``overflow``: a RANSAC problem that did not reach its bound within ``K`` samples, or an LMedS
+    problem when ``K < L``; never with the default block.
+    """
+    sp = _static_front(p1, p2, valid, confidence, max_iters, states, block)
+    if isinstance(sp, FundamentalResult):  # N < 8
+        return sp
+    F, inl, ok, iters, overflow = _static_lmeds(sp)
+    if sp.has_r:
+        # RANSAC (>= 15 points): the inlier count of every model, then OpenCV's loop replayed
+        B, N, K, k, tabs, per_n, is_r = sp.B, sp.N, sp.K, sp.k, sp.tabs, sp.per_n, sp.is_r
+        mask, cnt = _static_counts(sp, threshold * threshold)
+        cnt = cnt.view(B, K, 3)
+        run_best = torch.cummax(cnt.amax(-1), 1).values  # the best count after each sample
+        n_after = tabs.niters.take(run_best + per_n[:, 1, None])  # the bound after each sample
+        reached, i_stop = (tabs.ar1 >= n_after).to(torch.int8).max(1)  # OpenCV: iter < niters
+        used = torch.where(reached > 0, i_stop + 1, tabs.block)
+        cm = torch.where((tabs.ar1 <= used[:, None])[..., None], cnt, k.minus_one).view(B, 3 * K)
+        cand, k_r = cm.max(-1)  # first maximum: OpenCV's sequential strict ">"
+        F = torch.where(is_r[:, None], sp.Fm.gather(1, k_r[:, None, None].expand(-1, 1, 9))[:, 0], F)
+        inl = torch.where(is_r[:, None], mask.gather(1, k_r[:, None, None].expand(-1, 1, N))[:, 0], inl)
+        ok = torch.where(is_r, cand > _MODEL_POINTS - 1, ok)
+        iters = torch.where(is_r, used, iters)
+        over_r = is_r & (reached == 0)
+        overflow = over_r if overflow is None else overflow | over_r
+    return _static_result(sp, F, inl, ok, iters, overflow, p1.dtype)
+
+
+class _StaticFront(NamedTuple):
+    """What both capturable estimators share (:func:`_static_front`): the problems' points, their
+    first ``Kt`` OpenCV samples solved, the models' scoring rows."""
+
+    B: int
+    N: int
+    K: int  # RANSAC block (samples per problem)
+    K_l: int  # LMedS samples scored
+    L: int  # OpenCV's LMedS sample count
+    has_r: bool  # N >= 15: some problem may run RANSAC
+    k: _StaticConsts
+    tabs: _StaticTables
+    x12: torch.Tensor  # (B, N, 4) float64 (x1, y1, x2, y2), float32-rounded, zero at masked-out slots
+    eff: torch.Tensor  # (B, N) bool: valid and finite
+    n: torch.Tensor  # (B,) int64 valid, finite points
+    per_n: torch.Tensor  # (B, 4) int64: tabs.per_n of n
+    ge8: torch.Tensor  # (B,) bool: n >= 8
+    is_r: torch.Tensor  # (B,) bool: n >= 15 (RANSAC)
+    order: torch.Tensor  # (B, N) int64: valid slots first (valid_first_order)
+    Fm: torch.Tensor  # (B, 3 Kt, 9) float64 models, row-major (garbage where not fok)
+    fok: torch.Tensor  # (B, 3 Kt) bool
+    rows: torch.Tensor  # (B, 5, 3 Kt, 9): _score_rows of Fm
+    outer: torch.Tensor  # (B, N, 9): h2 (x) h1, 0 at masked-out slots
+
+
+def _static_front(p1, p2, valid, confidence, max_iters, states, block):
+    """The first part of :func:`_find_fundamental_static` (shared with the capturable LO-RANSAC):
+    a :class:`_StaticFront`, or the final :class:`FundamentalResult` when ``N < 8``."""
+    B, N = valid.shape
+    dev, out_dtype = p1.device, p1.dtype
+    f64 = torch.float64
+    M = max(int(max_iters), 1)
+    K = M if block is None else max(1, min(int(block), M))
+    L = _lmeds_iters(confidence, max_iters)
+    K_l = min(K, L)
+    has_r = N >= _MIN_RANSAC_POINTS
+    Kt = K if has_r else K_l  # samples solved per problem
+
+    # OpenCV rounds the points to float32; the solver runs in float64 (as _find_fundamental_impl).
+    # A sum of float32-range values is finite iff all are (no overflow in float64)
+    x12 = torch.cat([p1.detach(), p2.detach()], -1).to(torch.float32).to(f64)  # (B, N, 4)
+    eff = valid & (x12.sum(-1).abs() < math.inf)
+    n = eff.sum(-1)
+    if N < _MIN_POINTS:  # static: no problem can estimate
+        z = torch.zeros_like(eff[:, 0]) if N else torch.zeros(B, dtype=torch.bool, device=dev)
+        F = torch.full((B, 3, 3), math.nan, dtype=out_dtype, device=dev)
+        return FundamentalResult(F, eff, z, torch.zeros_like(n), z.to(torch.int8), z)
+    k = _static_consts(dev)
+    tabs = _static_tables(states, N, Kt, M, confidence, dev)
+    per_n = tabs.per_n.index_select(0, n)  # (B, 4): row, niters offset, median rank, method
+    ge8 = per_n[:, 3] > METHOD_NONE
+    is_r = per_n[:, 3] > METHOD_LMEDS
+    x12 = torch.where(eff[..., None], x12, k.zero)  # finite everywhere (both where branches are evaluated)
+
+    # the samples: positions among the valid points in slot order (OpenCV's arrays) -> slots
+    row = per_n[:, 0] if tabs.state_row is None else per_n[:, 0] + tabs.state_row
+    order = torch.sort(eff, dim=-1, descending=True, stable=True).indices  # valid_first_order
+    slot = order.gather(1, tabs.idx.index_select(0, row).view(B, Kt * _MODEL_POINTS))
+    smp = x12.gather(1, slot[..., None].expand(-1, -1, 4)).view(B * Kt, _MODEL_POINTS, 2, 2)
+    Fm, fok = _run_7point_static(smp, k)
+    Fm = Fm.view(B, Kt * 3, 9)
+    fok = fok.view(B, Kt * 3)
+    rows = _score_rows(Fm, k)  # (B, 5, 3 Kt, 9)
+    # outer products h2 (x) h1 of the homogeneous points, 0 at masked-out slots (_homogeneous)
+    h = torch.cat([x12.view(B, N, 2, 2), eff[:, :, None, None].expand(B, N, 2, 1).to(f64)], -1)
+    outer = (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)  # (B, N, 9)
+    return _StaticFront(B, N, K, K_l, L, has_r, k, tabs, x12, eff, n, per_n, ge8, is_r, order, Fm, fok, rows,
+                        outer)
+
+
+def _static_lmeds(sp: _StaticFront):
+    """LMedS (8..14 points) of the capturable path on every problem: ``F (B, 9)``, ``inl (B, N)``,
+    ``ok``, ``iters`` and ``overflow`` (None when the block holds OpenCV's LMedS samples)."""
+    N, K_l, L, k, tabs, per_n, n, eff, rows, outer = (sp.N, sp.K_l, sp.L, sp.k, sp.tabs, sp.per_n, sp.n, sp.eff,
+                                                      sp.rows, sp.outer)
+    # the median error of each model over the first 14 valid points
+    Wd = min(N, _MIN_RANSAC_POINTS - 1)
+    d2, smin = _score_terms(rows[:, :, : 3 * K_l], outer.gather(1, sp.order[:, :Wd, None].expand(-1, -1, 9)))
+    # _epipolar_errors: inf where a line is degenerate (d2 / 0; 0 / 0 at masked-out slots)
+    err = torch.nan_to_num(d2 / smin, nan=math.inf, posinf=math.inf)  # (B, 3 K_l, Wd)
+    kth = per_n[:, 2, None, None].expand(-1, 3 * K_l, 1)
+    med = err.sort(dim=-1).values.gather(2, kth)[..., 0].clamp_min_(_LMEDS_EXACT_FIT)  # see _robust_group
+    cand_l, k_l = torch.where(sp.fok[:, : 3 * K_l], med, k.inf).min(-1)  # first minimum: OpenCV's "<"
+    have = cand_l < math.inf
+    best = rows.gather(2, k_l[:, None, None, None].expand(-1, 5, 1, 9))  # (B, 5, 1, 9)
+    d2, smin = _score_terms(best, outer)
+    err = torch.nan_to_num(d2[:, 0] / smin[:, 0], nan=math.inf, posinf=math.inf)  # (B, N)
+    sigma = (tabs.sigma.index_select(0, n) * torch.where(have, cand_l, k.zero).sqrt()).clamp_min_(0.001)
+    inl = (err.to(torch.float32) <= (sigma * sigma).to(torch.float32)[:, None]) & eff
+    ok = have & (inl.sum(-1) >= _MODEL_POINTS) & sp.ge8
+    F = sp.Fm.gather(1, k_l[:, None, None].expand(-1, 1, 9))[:, 0]
+    iters = sp.ge8 * K_l
+    overflow = sp.ge8 & ~sp.is_r if K_l < L else None
+    return F, inl, ok, iters, overflow
+
+
+def _static_counts(sp: _StaticFront, thr2: float):
+    """RANSAC scoring of the block: the inlier masks ``(B, 3 K, N)`` of every model (OpenCV's test,
+    ``_inlier_mask``'s) and the counts ``(B, 3 K)`` int32, -1 where a sample gave no model."""
+    rows, outer, K = sp.rows, sp.outer, sp.K
+    parts, step = [], -(-3 * K // _STATIC_SCORE_CHUNKS)
+    for a in range(0, 3 * K, step):
+        d2, smin = _score_terms(rows[:, :, a : a + step], outer)
+        bound = smin if thr2 == 1.0 else smin * thr2
+        parts.append((d2 <= bound) & (smin > 0))  # (B, models, N): _inlier_mask's test
+    mask = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
+    # int32 counts: a bool sum into int64 converts the whole mask first (10x slower on the CPU)
+    return mask, torch.where(sp.fok, mask.sum(-1, dtype=torch.int32), sp.k.minus_one)  # -1: no model
+
+
+def _static_result(sp: _StaticFront, F, inl, ok, iters, overflow, out_dtype) -> FundamentalResult:
+    """The capturable path's :class:`FundamentalResult` from unit-norm ``F (B, 9)`` and the rest."""
+    if overflow is None:
+        overflow = torch.zeros_like(sp.ge8)
+    F = torch.where(ok[:, None], _canonical_sign_unit(F), sp.k.nan).view(sp.B, 3, 3)
+    return FundamentalResult(F.to(out_dtype), torch.where(ok[:, None], inl, sp.eff), ok, iters,
+                             sp.per_n[:, 3].to(torch.int8), overflow)
+
+
+# ----------------------------------------------------------------------------------------------
 # differentiable weighted 8-point refit
 # ----------------------------------------------------------------------------------------------
 def refit_fundamental(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
@@ -1057,6 +1618,17 @@ def refit_fundamental(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor)
     check_points(p2, "p2")
     check_shape(p2, tuple(p1.shape), "p2")
     check_shape(weights, tuple(p1.shape[:-1]), "weights")
+    return _refit_impl(p1, p2, weights)
+
+
+def _refit_impl(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor, warm: torch.Tensor | None = None,
+                lk: _LOConsts | None = None) -> torch.Tensor:
+    """:func:`refit_fundamental` without input checks. ``warm``: ``(B, 3, 3)`` a model near the
+    solution (any scale; ``lk`` its device constants): both eigenvectors then come from the
+    host-sync-free solvers :func:`_smallest_eigvec` (inverse iteration from ``warm``) and
+    :func:`_rank2` instead of ``torch.linalg.eigh`` (the same matrix up to rounding where the
+    smallest eigenvalue is well separated; near a degenerate (planar) configuration the member of
+    the family of solutions closest to ``warm``)."""
     dtype = p1.dtype
     w = weights.to(dtype)
     finite = torch.isfinite(p1).all(-1) & torch.isfinite(p2).all(-1) & torch.isfinite(w)
@@ -1080,14 +1652,25 @@ def refit_fundamental(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor)
     n1, c1, s1 = _normalise(x1)
     n2, c2, s2 = _normalise(x2)
     A = _epipolar_rows(n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1])  # (B, N, 9)
-    M = (A * w[..., None]).transpose(-1, -2) @ A  # (B, 9, 9)
+    M = (A * w[..., None]).transpose(-1, -2) @ A if warm is None else _normal_matrix(A, w)  # (B, 9, 9)
     M = torch.where(ok[:, None, None], M, torch.eye(9, dtype=dtype, device=p1.device).expand_as(M) * torch.arange(1, 10, dtype=dtype, device=p1.device))
-    f = torch.linalg.eigh(M).eigenvectors[..., 0]  # smallest eigenvalue
-    Fh = f.view(-1, 3, 3)
-    v = torch.linalg.eigh(Fh.transpose(-1, -2) @ Fh).eigenvectors[..., 0]  # (B, 3)
-    Fh = Fh - (Fh @ v[..., None]) @ v[..., None, :]
     zero = torch.zeros_like(s1)
     one = torch.ones_like(s1)
+    if warm is None:
+        f = torch.linalg.eigh(M).eigenvectors[..., 0]  # smallest eigenvalue
+        Fh = f.view(-1, 3, 3)
+        v = torch.linalg.eigh(Fh.transpose(-1, -2) @ Fh).eigenvectors[..., 0]  # (B, 3)
+        Fh = Fh - (Fh @ v[..., None]) @ v[..., None, :]
+    else:
+        # the warm model in the normalised coordinates: Fn = T2^-T F T1^-1, T^-1 = [[1/s, 0, cx],
+        # [0, 1/s, cy], [0, 0, 1]]
+        def _Tinv(s, c):
+            r = 1.0 / s
+            return torch.stack([torch.stack([r, zero, c[:, 0]], -1), torch.stack([zero, r, c[:, 1]], -1),
+                                torch.stack([zero, zero, one], -1)], -2)
+
+        f0 = (_Tinv(s2, c2).transpose(-1, -2) @ warm.to(dtype) @ _Tinv(s1, c1)).reshape(-1, 9)
+        Fh = _rank2(_smallest_eigvec(M, f0, lk, _EIG_POWER_FINAL).view(-1, 3, 3), lk)
 
     def _T(s, c):
         return torch.stack(
@@ -1102,3 +1685,506 @@ def refit_fundamental(p1: torch.Tensor, p2: torch.Tensor, weights: torch.Tensor)
     F = _T(s2, c2).transpose(-1, -2) @ Fh @ _T(s1, c1)
     F = _canonical_sign(F)
     return torch.where(ok[:, None, None], F, torch.full_like(F, float("nan")))
+
+
+# ----------------------------------------------------------------------------------------------
+# LO-RANSAC (method="lo"): OpenCV's hypotheses and inlier test, each new best model locally
+# optimised, the iteration bound from the optimised inlier counts, a final refit
+# ----------------------------------------------------------------------------------------------
+METHODS = ("opencv", "lo")
+#: weighted 8-point refits per local optimisation: the first on the hypothesis' inliers with unit
+#: weights, then Sampson weights of the previous refit on its inliers; the last one is made rank
+#: 2 and replaces the hypothesis if it has at least as many inliers (measured on the planted
+#: scenes: keeping the best of every refit instead, or rank 2 in every refit, gives the same recall
+#: and F error to 0.1 %)
+_LO_STEPS = 3
+#: capturable path: accepted models locally optimised per problem in OpenCV's order (a fixed
+#: budget), then one more: the remaining acceptable model with the most inliers (so that a problem
+#: that overflows still ends with its best hypothesis optimised; ``overflow`` is then True)
+_LO_EVENTS = 4
+#: inverse iteration: solves with the shifted normal matrix per eigenvector, in a local
+#: optimisation step (warm-started at the previous step; measured: 2..8 give the same recall and F
+#: error) and in the final refit (converged to ~1e-12 from a 1e-2 start on tracker-like scenes)
+_EIG_POWER_LO = 3
+_EIG_POWER_FINAL = 8
+#: relative shift of the normal matrix (keeps an exact null space invertible; eigenvectors unchanged)
+_EIG_SHIFT = 1e-12
+#: rank 2: power iteration on the adjugate of ``F^T F`` (dominant eigenvector = smallest of F^T F),
+#: raised to the ``2^k``-th power by k squarings
+_RANK2_SQUARINGS = 3
+#: Sampson weights: the denominator is floored at this fraction of its mean over the inliers
+_SAMPSON_FLOOR = 0.1
+_LO_CONSTS: dict = {}  # device -> _LOConsts
+_LO_BOUNDS: dict = {}  # (N, max_iters, confidence, device) -> (N + 1, N + 2) int64 iteration bounds
+_LO_INDEX: dict = {}  # (start, count, device) -> (global model index, its sample index)
+
+
+class _LOConsts(NamedTuple):
+    """Device constants of LO-RANSAC (see :func:`_lo_consts`)."""
+
+    shift: torch.Tensor  # (9, 9) float64: _EIG_SHIFT * I
+    shift6: torch.Tensor  # (6, 6) float64: _EIG_SHIFT * I
+    eye9: torch.Tensor  # (9, 9) float64: I
+    eye3: torch.Tensor  # (3, 3) float64: I
+    select: torch.Tensor  # (9, 45): _StaticConsts.select
+    eye23: torch.Tensor  # (2, 3) float64
+    zero: torch.Tensor  # () float64
+    minus_one: torch.Tensor  # () int32 -1
+
+
+def _lo_consts(device: torch.device) -> _LOConsts:
+    k = _LO_CONSTS.get(device)
+    return _build_lo_consts(device) if k is None else k
+
+
+@outside_graphs
+def _build_lo_consts(device: torch.device) -> _LOConsts:
+    sk = _static_consts(device)
+    eye9 = torch.eye(9, dtype=torch.float64, device=device)
+    k = _LOConsts(shift=_EIG_SHIFT * eye9, shift6=_EIG_SHIFT * eye9[:6, :6].contiguous(), eye9=eye9,
+                  eye3=eye9[:3, :3].contiguous(), select=sk.select,
+                  eye23=sk.eye23, zero=sk.zero, minus_one=sk.minus_one)
+    with _STREAM_LOCK:
+        return _LO_CONSTS.setdefault(device, k)
+
+
+def _lo_bounds(N: int, max_iters: int, confidence: float, device: torch.device) -> torch.Tensor:
+    """:func:`_niters_table` on ``device`` (cached): the default path's bound look-up."""
+    key = (N, max_iters, confidence, device)
+    t = _LO_BOUNDS.get(key)
+    if t is None:
+        t = _niters_table(N, max_iters, confidence).to(device)
+        with _STREAM_LOCK:
+            while len(_LO_BOUNDS) >= _STATIC_CACHE_SIZE:
+                _LO_BOUNDS.pop(next(iter(_LO_BOUNDS)))
+            t = _LO_BOUNDS.setdefault(key, t)
+    return t
+
+
+def _lo_index(start: int, count: int, device: torch.device):
+    """Models ``3 start .. 3 (start + count) - 1`` of a block: their global index and sample index,
+    ``(3 count,)`` int64 each (cached: the capturable path's block is one constant)."""
+    key = (start, count, device)
+    t = _LO_INDEX.get(key)
+    return _build_lo_index(key) if t is None else t
+
+
+@outside_graphs
+def _build_lo_index(key):
+    start, count, device = key
+    m = torch.arange(3 * start, 3 * (start + count), dtype=torch.int64, device=device)
+    t = (m, torch.div(m, 3, rounding_mode="floor"))
+    with _STREAM_LOCK:
+        while len(_LO_INDEX) >= 64:
+            _LO_INDEX.pop(next(iter(_LO_INDEX)))
+        return _LO_INDEX.setdefault(key, t)
+
+
+def _smallest_eigvec(M: torch.Tensor, f0: torch.Tensor, lk: _LOConsts, power: int) -> torch.Tensor:
+    """Unit eigenvector of the smallest eigenvalue of symmetric PSD ``M (B, n, n)`` (n = 9, or 6 in
+    :func:`_refit_fixed_epipole`) by inverse iteration from ``f0 (B, n)``, with no host sync: ``power`` solves with one LU factor of
+    ``M / tr M + shift I`` (``lu_factor_ex``, no error check). The error shrinks by ``(mu1 + shift) /
+    (mu2 + shift)`` per solve (mu the eigenvalues of ``M / tr M``); where the two smallest are
+    (nearly) equal, as for a planar scene, the result stays near ``f0``'s component in that
+    eigenspace. Vector solves, not an inverse: on the CPU ``inv_ex``, ``cholesky_solve`` and the
+    9x9 ``bmm`` give a problem different last bits in different batches (the algorithm or the BLAS
+    path depends on the batch and on memory alignment), ``lu_factor_ex`` / ``lu_solve`` of a
+    vector do not. Differentiable (autograd through the factorisation and the solves)."""
+    tr = M.diagonal(dim1=-2, dim2=-1).sum(-1)
+    shift = lk.shift if M.shape[-1] == 9 else lk.shift6
+    LU, piv, _ = torch.linalg.lu_factor_ex(torch.addcdiv(shift, M, tr[:, None, None]))
+    f = f0[..., None]
+    for _ in range(power):  # the norm grows to ~shift^-power (1e96 for 8): fine in float64
+        f = torch.linalg.lu_solve(LU, piv, f)
+    f = f[..., 0]
+    return f / f.norm(dim=-1, keepdim=True)
+
+
+def _normal_matrix(A: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``sum_i w_i a_i a_i^T`` for rows ``A (B, N, 9)`` and weights ``w (B, N)``: ``(B, 9, 9)`` as an
+    elementwise product and a sum (the same bits for a problem in any batch, unlike ``bmm``)."""
+    Aw = A * w[..., None]
+    return (Aw[:, :, :, None] * A[:, :, None, :]).sum(1)
+
+
+def _rank2(Fh: torch.Tensor, lk: _LOConsts) -> torch.Tensor:
+    """``Fh (I - v v^T)`` for ``Fh (B, 3, 3)``, v the right singular vector of the smallest singular
+    value (``refit_fundamental``'s rank-2 rule), with no host sync: v is the dominant eigenvector of
+    the adjugate of ``S = Fh^T Fh`` (its eigenvalues are the products of pairs of S's, the largest
+    belongs to S's smallest), by powers of the adjugate, from its row of largest norm. The result has
+    rank <= 2 whatever the convergence (a projection); it is the closest rank-2 matrix when the
+    ratio of the two smallest singular values is small (``(s3 / s2)^(2^(k+1))``)."""
+    v = _null_vector(Fh)[:, None]  # (B, 1, 3)
+    return torch.baddbmm(Fh, Fh @ v.transpose(-1, -2), v, alpha=-1.0)
+
+
+def _null_vector(Fh: torch.Tensor) -> torch.Tensor:
+    """:func:`_rank2`'s v, ``(B, 3)`` unit: the right singular vector of ``Fh``'s smallest singular
+    value (of a rank-2 F: its right epipole, ``F v = 0``)."""
+    S = Fh.transpose(-1, -2) @ Fh
+    C = torch.linalg.cross(S.roll(-1, -2), S.roll(-2, -2), dim=-1)  # cofactors = adjugate (symmetric)
+    for _ in range(_RANK2_SQUARINGS):
+        C = C @ C
+    v = C.gather(1, C.norm(dim=-1).argmax(-1)[:, None, None].expand(-1, 1, 3))[:, 0]
+    return v / v.norm(dim=-1, keepdim=True)
+
+
+def _refit_fixed_epipole(x1: torch.Tensor, x2: torch.Tensor, w: torch.Tensor, F: torch.Tensor,
+                         lk: _LOConsts) -> torch.Tensor:
+    """A weighted 8-point refit with ``F``'s right epipole held fixed (the algebraic minimisation of
+    Hartley & Zisserman, sec. 11.3, one step): the rows of ``Fn`` are confined to the plane
+    orthogonal to the epipole e, ``f = N g`` with ``N = I_3 (x) [u v]`` (u, v an orthonormal basis of
+    that plane), and g is the smallest eigenvector of ``N^T M N`` (6x6; inverse iteration from the
+    projection of ``F``). Rank 2 by construction: no projection afterwards, which is what makes it
+    more accurate than the plain 8-point fit (measured on the planted scenes of
+    ``benchmarks/bench_fundamental_accuracy.py`` after the plain refit: median F error 0.068 px
+    instead of 0.075 at 0 % outliers, 0.090 instead of 0.100 at 40 %).
+
+    ``x1, x2 (B, N, 2)`` float64, finite (zero where ``w == 0``); ``w (B, N)`` >= 0; ``F (B, 3, 3)``
+    pixel model, rank 2. Hartley normalisation over the points of positive weight (unit weights,
+    RMS distance sqrt(2)). Returns ``(B, 3, 3)`` unit norm, largest entry positive, NaN with fewer
+    than 8 points of positive weight. Differentiable w.r.t. the points, ``w`` and ``F``."""
+    B = F.shape[0]
+    use = w > 0
+    ok = use.sum(-1) >= _MIN_POINTS
+    wu = use.to(w.dtype)
+    W = wu.sum(-1).clamp_min(1.0)[:, None]
+
+    def _normalise(x):
+        c = (wu[..., None] * x).sum(1) / W  # (B, 2)
+        d = x - c[:, None]
+        r2 = (wu * (d * d).sum(-1)).sum(-1, keepdim=True) / W
+        s = torch.sqrt(2.0 / torch.where(r2 > 0, r2, torch.ones_like(r2)))  # (B, 1)
+        one, zero = torch.ones_like(s), torch.zeros_like(s)
+        T = torch.cat([s, zero, -s * c[:, :1], zero, s, -s * c[:, 1:], zero, zero, one], -1).view(B, 3, 3)
+        r = 1.0 / s
+        Ti = torch.cat([r, zero, c[:, :1], zero, r, c[:, 1:], zero, zero, one], -1).view(B, 3, 3)
+        return d * s[..., None], T, Ti
+
+    n1, T1, T1i = _normalise(x1)
+    n2, T2, T2i = _normalise(x2)
+    M = _normal_matrix(_epipolar_rows(n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1]), w)
+    Fn = T2i.transpose(-1, -2) @ F @ T1i
+    e = _null_vector(Fn)
+    a = lk.eye3.index_select(0, e.abs().argmin(-1))  # the axis least aligned with e
+    u = torch.linalg.cross(e, a)
+    u = u / u.norm(dim=-1, keepdim=True)
+    Bm = torch.stack([u, torch.linalg.cross(e, u)], -1)  # (B, 3, 2)
+    N = (lk.eye3[None, :, None, :, None] * Bm[:, None, :, None, :]).reshape(B, 9, 6)
+    MN = (M[:, :, :, None] * N[:, None, :, :]).sum(2)  # (B, 9, 6), elementwise (see _smallest_eigvec)
+    Mg = (N[:, :, :, None] * MN[:, :, None, :]).sum(1)  # (B, 6, 6)
+    g = _smallest_eigvec(Mg, (N * Fn.reshape(B, 9, 1)).sum(1), lk, _EIG_POWER_FINAL)
+    F = T2.transpose(-1, -2) @ (N * g[:, None, :]).sum(-1).view(B, 3, 3) @ T1
+    return torch.where(ok[:, None, None], _canonical_sign(F), math.nan)
+
+
+class _LOContext(NamedTuple):
+    """Per-call data of the local optimisation (:func:`_lo_context`)."""
+
+    An: torch.Tensor  # (B, N, 9) epipolar rows in Hartley-normalised coordinates (all valid points)
+    Kn2p: torch.Tensor  # (B, 9, 9): vec(F) = Kn2p vec(Fn) (normalised -> pixel models, row-major)
+    Kp2n: torch.Tensor  # (B, 9, 9): its inverse
+    outer: torch.Tensor  # (B, N, 9): pixel h2 (x) h1 (scoring), 0 at masked-out slots
+    thr2: float
+    bounds: torch.Tensor  # (N + 1, N + 2) int64: the iteration bound [n, best count + 1]
+    bound_row: torch.Tensor  # (B,) int64: n (N + 2) + 1 (+ best count = the index into bounds)
+    lk: _LOConsts
+
+
+def _lo_context(x12, eff, n, outer, thr2, bounds, lk) -> _LOContext:
+    """The local optimisation's fixed normalisation: per problem and image the centroid and RMS
+    distance sqrt(2) of all valid points (``refit_fundamental``'s rule with unit weights; it only
+    conditions the normal matrix, the reweighted solution hardly depends on it), the normalised
+    epipolar rows and the maps between normalised and pixel models."""
+    B, N = eff.shape
+    w = eff.to(torch.float64)[..., None, None]  # (B, N, 1, 1)
+    W = n.clamp_min(1).to(torch.float64)[:, None, None]  # (B, 1, 1)
+    x = x12.view(B, N, 2, 2)
+    c = (x * w).sum(1) / W  # (B, image, 2)
+    d = (x - c[:, None]) * w
+    r2 = (d * d).sum((1, 3)) / W[..., 0]  # (B, image): mean squared distance
+    s = torch.sqrt(2.0 / torch.where(r2 > 0, r2, torch.ones_like(r2)))
+    h = torch.nn.functional.pad(d * s[:, None, :, None], (0, 1), value=1.0)  # (B, N, image, 3)
+    An = (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)  # _epipolar_rows' order
+    # T^T = [[s, 0, 0], [0, s, 0], [-s cx, -s cy, 1]]; T^-T = [[1/s, 0, 0], [0, 1/s, 0], [cx, cy, 1]]
+    top = s[..., None, None] * lk.eye23  # (B, image, 2, 3)
+    Tt = torch.cat([top, torch.nn.functional.pad(c * -s[..., None], (0, 1), value=1.0)[:, :, None]], 2)
+    Ti = torch.cat([top / (s * s)[..., None, None], torch.nn.functional.pad(c, (0, 1), value=1.0)[:, :, None]], 2)
+    Kn2p = (Tt[:, 1, :, None, :, None] * Tt[:, 0, None, :, None, :]).reshape(B, 9, 9)
+    Kp2n = (Ti[:, 1, :, None, :, None] * Ti[:, 0, None, :, None, :]).reshape(B, 9, 9)
+    return _LOContext(An, Kn2p, Kp2n, outer, thr2, bounds, n * (N + 2) + 1, lk)
+
+
+def _lo_score(Fp: torch.Tensor, ctx: _LOContext, weights: bool = True):
+    """OpenCV's inlier test of pixel models ``Fp (B, 9)`` (any scale) on every point: the mask
+    ``(B, N)``, the counts ``(B,)`` int32 and (``weights``, else None) the Sampson weights ``(B,
+    N)`` (:func:`_sampson_weights`). The terms of :func:`_score_terms` as elementwise products and
+    sums (a batched matmul's last bits depend on the batch and on memory alignment)."""
+    B = Fp.shape[0]
+    rows = (Fp[:, :, None] * ctx.lk.select).sum(1).view(B, 5, 1, 9)  # _score_rows
+    o = (rows * ctx.outer[:, None]).sum(-1)  # (B, 5, N)
+    o = o * o
+    s2 = o[:, 1] + o[:, 2]
+    s1 = o[:, 3] + o[:, 4]
+    smin = torch.minimum(s1, s2)
+    bound = smin if ctx.thr2 == 1.0 else smin * ctx.thr2
+    inl = (o[:, 0] <= bound) & (smin > 0)
+    cnt = inl.sum(-1, dtype=torch.int32)
+    return inl, cnt, _sampson_weights(s1 + s2, inl, cnt, ctx.lk) if weights else None
+
+
+def _sampson_weights(den: torch.Tensor, inl: torch.Tensor, cnt: torch.Tensor, lk: _LOConsts) -> torch.Tensor:
+    """IRLS weights ``(B, N)`` that turn the algebraic error into the Sampson error: ``1 / den`` at
+    inliers (``den = |F x1|_xy^2 + |F^T x2|_xy^2``), 0 elsewhere, with den floored at
+    ``_SAMPSON_FLOOR`` times its mean over the inliers: a point near the epipole has a tiny den,
+    and unbounded, its weight decides the fit alone (measured on EuRoC frames with sub-pixel
+    motion: one weight 2000x the median turned a 150-inlier model into a 100-inlier one)."""
+    mean = torch.where(inl, den, lk.zero).sum(-1) / cnt.clamp_min(1)
+    return torch.where(inl, torch.maximum(den, (_SAMPSON_FLOOR * mean)[:, None]).reciprocal(), lk.zero)
+
+
+def _lo_refine(F0: torch.Tensor, inl0: torch.Tensor, cnt0: torch.Tensor, ctx: _LOContext):
+    """Local optimisation of pixel models ``F0 (B, 9)`` with inliers ``inl0`` and counts ``cnt0``:
+    ``_LO_STEPS`` iteratively reweighted 8-point refits (the first on the inliers with unit
+    weights, then :func:`_sampson_weights` of the previous refit on its inliers: the weighted
+    algebraic error is then the Sampson error), each re-scored with OpenCV's test for the next
+    one's inliers; the last one, made rank 2, is returned with its mask and count if it has at
+    least as many inliers as ``F0``, else ``F0`` (rounded to float32, see below) and its own."""
+    # The hypothesis rounded to float32: a 7-point model's last bits depend on the batch it was
+    # solved in (batched CPU matmuls), the rounded one does not, and as a starting point (and
+    # a model to score) it is as good
+    F0 = F0.to(torch.float32).to(torch.float64)
+    f = (ctx.Kp2n @ F0[..., None])[..., 0]  # warm start, normalised coordinates
+    bF, bI, bC = F0, inl0, cnt0
+    w = inl0.to(torch.float64)
+    B = F0.shape[0]
+    for j in range(_LO_STEPS):
+        M = _normal_matrix(ctx.An, w)
+        f = _smallest_eigvec(M, f, ctx.lk, _EIG_POWER_LO)
+        if j == _LO_STEPS - 1:
+            f = _rank2(f.view(B, 3, 3), ctx.lk).view(B, 9)
+        Fp = (ctx.Kn2p @ f[..., None])[..., 0]
+        inl, cnt, w = _lo_score(Fp, ctx, j < _LO_STEPS - 1)
+        if j == _LO_STEPS - 1:
+            take = cnt >= bC
+            bF = torch.where(take[:, None], Fp, bF)
+            bI = torch.where(take[:, None], inl, bI)
+            bC = torch.where(take, cnt, bC)
+    return bF, bI, bC
+
+
+class _LOState(NamedTuple):
+    """The replayed loop's state per problem: the acceptance bar (best count, at least 6: OpenCV
+    accepts a model with more than ``max(best, modelPoints - 1)`` inliers), the iteration bound, the
+    global index of the last accepted model (-1: none), the best model, its mask and count."""
+
+    bar: torch.Tensor  # (B,) int32
+    bound: torch.Tensor  # (B,) int64
+    last: torch.Tensor  # (B,) int64
+    F: torch.Tensor  # (B, 9) float64, pixel model (any scale)
+    inl: torch.Tensor  # (B, N) bool
+    cnt: torch.Tensor  # (B,) int32, -1: no model
+
+
+def _lo_init(B: int, N: int, max_iters: int, device) -> _LOState:
+    i64 = dict(dtype=torch.int64, device=device)
+    return _LOState(torch.full((B,), _MODEL_POINTS - 1, dtype=torch.int32, device=device),
+                    torch.full((B,), max(int(max_iters), 1), **i64), torch.full((B,), -1, **i64),
+                    torch.zeros(B, 9, dtype=torch.float64, device=device),
+                    torch.zeros(B, N, dtype=torch.bool, device=device),
+                    torch.full((B,), -1, dtype=torch.int32, device=device))
+
+
+def _lo_last_sample(st: _LOState) -> torch.Tensor:
+    """The last sample OpenCV's loop draws given the state: ``for (iter = 0; iter < niters; iter++)``
+    with ``niters`` the bound set while sample ``last // 3`` was scored: ``max(last // 3, bound - 1)``."""
+    return torch.maximum(torch.div(st.last, 3, rounding_mode="floor"), st.bound - 1)
+
+
+def _lo_eligible(st: _LOState, cnt: torch.Tensor, index) -> torch.Tensor:
+    """``(B, 3 K)`` bool: the block's models that OpenCV's loop would accept next (after the last
+    accepted one, drawn before the loop stops, with more inliers than the bar)."""
+    midx, msmp = index
+    return (midx > st.last[:, None]) & (msmp <= _lo_last_sample(st)[:, None]) & (cnt > st.bar[:, None])
+
+
+def _lo_event(st: _LOState, Fm, mask, cnt, index, ctx: _LOContext, most: bool = False):
+    """One new best model per problem (where there is one in the block): the first eligible model
+    (``most``: the eligible one with the most inliers, the first of equals), locally optimised; the
+    bar and the bound then follow the optimised count (OpenCV's ``RANSACUpdateNumIters`` with the
+    LO inlier ratio). Returns the new state and ``(B,)`` bool (a model was accepted)."""
+    N = mask.shape[-1]
+    elig = _lo_eligible(st, cnt, index)
+    if most:
+        has, j = torch.where(elig, cnt, ctx.lk.minus_one).max(1)
+        has = has >= 0
+    else:
+        has, j = elig.to(torch.int8).max(1)
+        has = has > 0
+    F0 = Fm.gather(1, j[:, None, None].expand(-1, 1, 9))[:, 0]
+    I0 = mask.gather(1, j[:, None, None].expand(-1, 1, N))[:, 0]
+    C0 = cnt.gather(1, j[:, None])[:, 0]
+    F1, I1, C1 = _lo_refine(F0, I0, C0, ctx)
+    bound = ctx.bounds.take(ctx.bound_row + C1)
+    return _LOState(torch.where(has, C1, st.bar), torch.where(has, bound, st.bound),
+                    torch.where(has, index[0].gather(0, j), st.last), torch.where(has[:, None], F1, st.F),
+                    torch.where(has[:, None], I1, st.inl), torch.where(has, C1, st.cnt)), has
+
+
+def _sampson_den(x1: torch.Tensor, x2: torch.Tensor, F: torch.Tensor) -> torch.Tensor:
+    """``|F x1|_xy^2 + |F^T x2|_xy^2`` ``(B, N)`` of pixel points ``(B, N, 2)`` and models ``(B, 3, 3)``,
+    elementwise (see :func:`_lo_score`)."""
+    l2 = (torch.nn.functional.pad(x1, (0, 1), value=1.0)[:, :, None, :] * F[:, None]).sum(-1)  # F x1
+    l1 = (torch.nn.functional.pad(x2, (0, 1), value=1.0)[:, :, :, None] * F[:, None]).sum(-2)  # F^T x2
+    return (l2[..., :2] * l2[..., :2]).sum(-1) + (l1[..., :2] * l1[..., :2]).sum(-1)
+
+
+def _lo_final(p1, p2, eff, st: _LOState, ctx: _LOContext):
+    """The final refit on the final inliers and its inliers: ``F (B, 3, 3)`` float64 unit norm,
+    largest entry positive, and OpenCV's test of it ``(B, N)``. On the points as given (float64),
+    weighted by the inlier mask over Sampson denominators (:func:`_sampson_weights`): an 8-point
+    refit (:func:`_refit_impl`: ``refit_fundamental``'s normalisation and rank-2 rule, with the
+    host-sync-free eigensolvers, warm-started at the best model; its weights from the best model),
+    then :func:`_refit_fixed_epipole` (weights from that refit), then OpenCV's test.
+    Differentiable w.r.t. ``p1, p2`` (the mask and the best model are constants). Where the refit
+    is not finite (fewer than 8 inliers) or has fewer inliers than the best model (a degenerate
+    configuration), the best model and its mask are kept (no gradient there)."""
+    f64 = torch.float64
+    x1 = torch.where(eff[..., None], p1.to(f64), 0.0)  # no NaN in any product (clean gradients)
+    x2 = torch.where(eff[..., None], p2.to(f64), 0.0)
+    F0 = st.F.view(-1, 3, 3)
+    lk = ctx.lk
+    F = _refit_impl(x1, x2, _sampson_weights(_sampson_den(x1, x2, F0), st.inl, st.cnt, lk), warm=F0, lk=lk)
+    F = _refit_fixed_epipole(x1, x2, _sampson_weights(_sampson_den(x1, x2, F), st.inl, st.cnt, lk), F, lk)
+    inl, cnt, _ = _lo_score(F.detach().reshape(-1, 9), ctx, False)
+    good = torch.isfinite(F).flatten(1).all(-1) & (cnt >= st.cnt)
+    F = torch.where(good[:, None, None], F, _canonical_sign(F0))
+    return F, torch.where(good[:, None], inl, st.inl)
+
+
+def _find_fundamental_lo_static(p1, p2, valid, threshold, confidence, max_iters, states, block):
+    """``method="lo"``, ``capturable=True``: :func:`_find_fundamental_static`'s samples, models and
+    inlier counts (one block of ``K`` samples), then OpenCV's loop replayed with local
+    optimisation: ``_LO_EVENTS`` times the next accepted model (the first one after the last
+    accepted that has more inliers than the current LO count, drawn before the bound stops the
+    loop) is locally optimised and sets the bar and the bound; then the final refit. A fixed
+    number of kernels; ``overflow`` where the block ended before OpenCV's loop would have (as the
+    OpenCV path) or a further model would have been accepted after the budget. LMedS problems
+    (8..14 points) get the OpenCV path's result."""
+    sp = _static_front(p1, p2, valid, confidence, max_iters, states, block)
+    if isinstance(sp, FundamentalResult):  # N < 8
+        return sp
+    F, inl, ok, iters, overflow = _static_lmeds(sp)
+    if sp.has_r:
+        B, N, K, is_r = sp.B, sp.N, sp.K, sp.is_r
+        thr2 = threshold * threshold
+        lk = _lo_consts(p1.device)
+        mask, cnt = _static_counts(sp, thr2)
+        ctx = _lo_context(sp.x12, sp.eff, sp.n, sp.outer, thr2, sp.tabs.niters, lk)
+        index = _lo_index(0, K, p1.device)
+        st = _lo_init(B, N, max_iters, p1.device)
+        for _ in range(_LO_EVENTS):
+            st, _ = _lo_event(st, sp.Fm, mask, cnt, index, ctx)
+        st, more = _lo_event(st, sp.Fm, mask, cnt, index, ctx, most=True)  # past the budget
+        last = _lo_last_sample(st)
+        Ff, inl_f = _lo_final(p1, p2, sp.eff, st, ctx)
+        F = torch.where(is_r[:, None], Ff.view(B, 9), F)
+        inl = torch.where(is_r[:, None], inl_f, inl)
+        ok = torch.where(is_r, st.cnt > _MODEL_POINTS - 1, ok)
+        iters = torch.where(is_r, torch.clamp_max(last + 1, K), iters)
+        over_r = is_r & ((last >= K) | more)
+        overflow = over_r if overflow is None else overflow | over_r
+    return _static_result(sp, F, inl, ok, iters, overflow, p1.dtype)
+
+
+def _find_fundamental_lo(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses):
+    """``method="lo"``, ``capturable=False``: the capturable path's algorithm (the same models, loop,
+    local optimisation and final refit, so the same result where that path does not overflow),
+    with the default path's early exits: rounds of 32, 64, ... samples for the problems still
+    running (one host sync per round and one per accepted model), as many accepted models as
+    OpenCV's loop finds (never ``overflow``). LMedS problems (8..14 points) get the OpenCV path's
+    result (:func:`_find_fundamental_impl`)."""
+    B, N = valid.shape
+    dev, out_dtype = p1.device, p1.dtype
+    f64 = torch.float64
+    x12 = torch.cat([p1.detach(), p2.detach()], -1).to(torch.float32).to(f64)
+    eff = valid & (x12.sum(-1).abs() < math.inf)
+    n = eff.sum(-1)
+    n_host = n.tolist()  # host sync: sample tables are per (seed, n)
+    F = torch.full((B, 3, 3), math.nan, dtype=out_dtype, device=dev)
+    inliers = eff.clone()
+    ok = torch.zeros(B, dtype=torch.bool, device=dev)
+    iters = torch.zeros(B, dtype=torch.int64, device=dev)
+    method = (n >= _MIN_POINTS).to(torch.int8) + (n >= _MIN_RANSAC_POINTS).to(torch.int8)
+    lmeds = [b for b in range(B) if _MIN_POINTS <= n_host[b] < _MIN_RANSAC_POINTS]
+    if lmeds:
+        rows = torch.tensor(lmeds, dtype=torch.int64, device=dev)
+        r = _find_fundamental_impl(p1.detach()[rows], p2.detach()[rows], valid[rows], threshold, confidence,
+                                   max_iters, [states[b] for b in lmeds], batch_hypotheses)
+        F = F.index_copy(0, rows, r.F)
+        inliers[rows] = r.inliers
+        ok[rows] = r.ok
+        iters[rows] = r.num_iters
+    sel = [b for b in range(B) if n_host[b] >= _MIN_RANSAC_POINTS]
+    if not sel:
+        return FundamentalResult(F, inliers, ok, iters, method)
+    R = len(sel)
+    rows = slice(None) if R == B else torch.tensor(sel, dtype=torch.int64, device=dev)
+    x12, eff_r, n_r = x12[rows], eff[rows], n[rows]
+    x12 = torch.where(eff_r[..., None], x12, 0.0)
+    k = _static_consts(dev)
+    lk = _lo_consts(dev)
+    thr2 = threshold * threshold
+    Mx = max(int(max_iters), 1)
+    h = torch.cat([x12.view(R, N, 2, 2), eff_r[:, :, None, None].expand(R, N, 2, 1).to(f64)], -1)
+    outer = (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)  # (R, N, 9), as _static_front
+    ctx = _lo_context(x12, eff_r, n_r, outer, thr2, _lo_bounds(N, Mx, confidence, dev), lk)
+    order = torch.sort(eff_r, dim=-1, descending=True, stable=True).indices
+    streams = [_subset_stream(states[b], n_host[b]) for b in sel]
+    st = _lo_init(R, N, Mx, dev)
+    strategy = _tuning.for_device(dev)
+    act, s0, rnd = list(range(R)), 0, 0
+    last_h = [Mx - 1] * R
+    while act:
+        A = len(act)
+        Hr = min(strategy.ransac_first_round << rnd, max(last_h[i] for i in act) + 1 - s0,
+                 batch_hypotheses if batch_hypotheses is not None
+                 else max(16, strategy.ransac_round_elems // max(A * N, 1)))
+        rnd += 1
+        idx = np.zeros((A, Hr, _MODEL_POINTS), dtype=np.int64)
+        for j, i in enumerate(act):
+            idx[j] = streams[i].upto(s0 + Hr)[s0 : s0 + Hr]
+        full = A == R
+        a = slice(None) if full else torch.tensor(act, dtype=torch.int64, device=dev)
+        sub = st if full else _LOState(*(t[a] for t in st))
+        cx = ctx if full else ctx._replace(An=ctx.An[a], Kn2p=ctx.Kn2p[a], Kp2n=ctx.Kp2n[a], outer=ctx.outer[a],
+                                           bound_row=ctx.bound_row[a])
+        slot = order[a].gather(1, torch.from_numpy(idx).to(dev).view(A, Hr * _MODEL_POINTS))
+        smp = x12[a].gather(1, slot[..., None].expand(-1, -1, 4)).view(A * Hr, _MODEL_POINTS, 2, 2)
+        Fm, fok = _run_7point_static(smp, k)
+        Fm = Fm.view(A, Hr * 3, 9)
+        d2, smin = _score_terms(_score_rows(Fm, k), cx.outer)
+        bound = smin if thr2 == 1.0 else smin * thr2
+        mask = (d2 <= bound) & (smin > 0)  # (A, 3 Hr, N): _static_counts' test
+        cnt = torch.where(fok.view(A, Hr * 3), mask.sum(-1, dtype=torch.int32), k.minus_one)
+        index = _lo_index(s0, Hr, dev)
+        while bool(_lo_eligible(sub, cnt, index).any()):  # host sync per accepted model
+            sub, _ = _lo_event(sub, Fm, mask, cnt, index, cx)
+        if full:
+            st = sub
+        else:
+            st = _LOState(*(t.index_copy(0, a, u) for t, u in zip(st, sub)))
+        s0 += Hr
+        last_a = _lo_last_sample(sub).tolist()  # host sync per round
+        for j, i in enumerate(act):
+            last_h[i] = last_a[j]
+        act = [i for i in act if last_h[i] >= s0]
+    okr = st.cnt > _MODEL_POINTS - 1
+    Ff, inl_f = _lo_final(p1[rows], p2[rows], eff_r, st, ctx)
+    Ff = torch.where(okr[:, None, None], Ff, math.nan).to(out_dtype)
+    inl_r = torch.where(okr[:, None], inl_f, eff_r)
+    it_r = _lo_last_sample(st) + 1
+    if R == B:
+        return FundamentalResult(Ff, inl_r, okr, it_r, method)
+    return FundamentalResult(F.index_copy(0, rows, Ff), inliers.index_copy(0, rows, inl_r), ok.index_copy(0, rows, okr),
+                             iters.index_copy(0, rows, it_r), method)

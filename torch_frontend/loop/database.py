@@ -126,7 +126,7 @@ class PlaceDatabase:
         """
         words, weights = self._check_bow(bows)
         B = words.shape[0]
-        s = self._streams(torch.arange(B) if streams is None else streams, B)
+        s = self._streams(torch.arange(B, device=self.device) if streams is None else streams, B)
         # Per-stream ids: current size + rank of the row among earlier rows of the same stream.
         same = (s[:, None] == s[None, :]) & torch.ones(B, B, dtype=torch.bool, device=self.device).tril(-1)
         ids = self._size[s] + same.sum(1)
@@ -253,7 +253,7 @@ class PlaceDatabase:
         """
         words, weights = self._check_bow(bows)
         B = words.shape[0]
-        s = self._streams(torch.arange(B) if streams is None else streams, B)
+        s = self._streams(torch.arange(B, device=self.device) if streams is None else streams, B)
         if torch.unique(s).numel() != B:
             raise ValueError("detect_loop_many: one keyframe per stream per call (streams must be distinct)")
         idx = torch.as_tensor(index, dtype=torch.int64, device=self.device).reshape(-1).expand(B)

@@ -324,8 +324,9 @@ def make_brief_pattern(seed: int = 20260129, n_bits: int = 256, patch_size: int 
 
 def _pattern_tensor(pattern, device) -> torch.Tensor:
     if pattern is None:
-        pattern = default_brief_pattern()
-    p = torch.as_tensor(np.asarray(pattern) if not isinstance(pattern, torch.Tensor) else pattern)
+        pattern = _default_pattern_np()
+    # built straight on the device (a numpy pattern is one upload; a tensor one moves if needed)
+    p = torch.as_tensor(np.asarray(pattern) if not isinstance(pattern, torch.Tensor) else pattern, device=device)
     if p.dim() != 2 or p.shape[0] != 4 or p.shape[1] == 0:
         raise ValueError(f"pattern: expected shape (4, n_bits) rows x1, y1, x2, y2, got {tuple(p.shape)}")
     if p.shape[1] % 64:

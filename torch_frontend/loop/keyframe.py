@@ -20,7 +20,7 @@ Convention:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Dict, Optional, Tuple
 
 import numpy as np
@@ -171,9 +171,8 @@ def match_brief(
 
 # ------------------------------------------------------------------------------------ KeyFrame
 def _as_f64(x, shape, name: str, where: str, device=None) -> Tensor:
-    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x)
-    if device is not None:
-        t = t.to(device)
+    # straight onto ``device`` (None: a tensor stays where it is, an array goes to the CPU)
+    t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x, device=device)
     t = t.to(_F64)
     try:
         check_shape(t, shape, name)
@@ -250,16 +249,31 @@ class KeyFrame:
         """K, the number of FAST keypoints."""
         return int(self.keypoints.shape[0])
 
+    @property
+    def device(self) -> torch.device:
+        """The device of the keyframe's tensors (that of ``origin_vio_T``)."""
+        return self.origin_vio_T.device
+
+    def to(self, device) -> KeyFrame:
+        """Move every tensor field to ``device`` (in place; returns self). A no-op where they are."""
+        device = torch.device(device)
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, torch.Tensor) and v.device != device:
+                setattr(self, f.name, v.to(device))
+        return self
+
     def update_vio_pose(self, T: Tensor, R: Tensor) -> None:
-        """VINS ``updateVioPose``: set the vio pose and the corrected pose to ``(T, R)``."""
-        self.vio_T = torch.as_tensor(T, dtype=_F64).clone()
-        self.vio_R = torch.as_tensor(R, dtype=_F64).clone()
+        """VINS ``updateVioPose``: set the vio pose and the corrected pose to ``(T, R)`` (moved to
+        the keyframe's device)."""
+        self.vio_T = torch.as_tensor(T, dtype=_F64, device=self.device).clone()
+        self.vio_R = torch.as_tensor(R, dtype=_F64, device=self.device).clone()
         self.T_w_i, self.R_w_i = self.vio_T.clone(), self.vio_R.clone()
 
     def update_pose(self, T: Tensor, R: Tensor) -> None:
-        """VINS ``updatePose``: set the corrected pose ``(T_w_i, R_w_i)``."""
-        self.T_w_i = torch.as_tensor(T, dtype=_F64).clone()
-        self.R_w_i = torch.as_tensor(R, dtype=_F64).clone()
+        """VINS ``updatePose``: set the corrected pose ``(T_w_i, R_w_i)`` (on the keyframe's device)."""
+        self.T_w_i = torch.as_tensor(T, dtype=_F64, device=self.device).clone()
+        self.R_w_i = torch.as_tensor(R, dtype=_F64, device=self.device).clone()
 
     # ------------------------------------------------------------------------ constructors
     @classmethod
@@ -306,7 +320,7 @@ class KeyFrame:
         if N == 0:
             raise DataError(f"keyframe at time {where}: a keyframe needs tracked features with 3D points (got 0)")
         p3 = _as_f64(point_3d, (None, 3), "point_3d", where, dev)
-        ids = torch.as_tensor(np.asarray(point_id) if not isinstance(point_id, torch.Tensor) else point_id).to(dev)
+        ids = torch.as_tensor(np.asarray(point_id) if not isinstance(point_id, torch.Tensor) else point_id, device=dev)
         if ids.dim() != 1:
             raise DataError(f"keyframe at time {where}: point_id: expected shape (N,), got {tuple(ids.shape)}")
         lens = {"point_3d": p3.shape[0], "point_2d_uv": N, "point_id": ids.shape[0]}
@@ -368,7 +382,7 @@ class KeyFrame:
         dev = T.device
         kp = _as_f64(keypoints, (None, 2), "keypoints", where, dev).to(torch.float32)
         kn = _as_f64(keypoints_norm, (None, 2), "keypoints_norm", where, dev)
-        bd = torch.as_tensor(np.asarray(brief) if not isinstance(brief, torch.Tensor) else brief).to(dev)
+        bd = torch.as_tensor(np.asarray(brief) if not isinstance(brief, torch.Tensor) else brief, device=dev)
         if bd.dim() != 2 or bd.dtype != torch.int64:
             raise DataError(f"keyframe at time {where}: brief: expected (K, W) int64, got {bd.dtype} "
                             f"of shape {tuple(bd.shape)}")

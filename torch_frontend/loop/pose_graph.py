@@ -91,13 +91,15 @@ class LoopResult:
 
 
 def _pad(rows: Sequence[torch.Tensor], width: int, fill=0):
-    """Stack ragged ``(n_b, ...)`` tensors into ``(B, width, ...)`` plus a ``(B, width)`` mask."""
-    n = torch.tensor([r.shape[0] for r in rows])
+    """Stack ragged ``(n_b, ...)`` tensors (one device) into ``(B, width, ...)`` plus a
+    ``(B, width)`` mask, on their device."""
+    dev = rows[0].device
+    n = torch.tensor([r.shape[0] for r in rows], device=dev)
     out = torch.nn.utils.rnn.pad_sequence(list(rows), batch_first=True, padding_value=fill)
     if out.shape[1] < width:
         out = torch.cat([out, out.new_full((out.shape[0], width - out.shape[1], *out.shape[2:]), fill)], 1)
-    valid = torch.arange(width)[None, :] < n[:, None]
-    return out, valid.to(out.device)
+    valid = torch.arange(width, device=dev)[None, :] < n[:, None]
+    return out, valid
 
 
 def verify_loops(
@@ -118,8 +120,9 @@ def verify_loops(
     |relative yaw| < 30° and ‖relative t‖ < 20.
 
     Args:
-        curs, olds: B keyframes each; ``curs`` need points and window descriptors.
-        R_ic, t_ic: camera-to-body extrinsic, ``(3, 3)`` and ``(3,)``.
+        curs, olds: B keyframes each, all on one device (where the verification runs);
+            ``curs`` need points and window descriptors.
+        R_ic, t_ic: camera-to-body extrinsic, ``(3, 3)`` and ``(3,)`` (moved to that device).
         pnp_backend: ``"torch"`` (batched) or ``"opencv"`` (``cv2.solvePnPRansac`` as VINS).
         generator: RANSAC randomness (deterministic results).
         scores: place-recognition scores to carry into the results.
@@ -137,18 +140,21 @@ def verify_loops(
         if c.point_3d.shape[0] == 0:
             raise DataError(f"verify_loops: keyframe {c.index} (time {c.time:.6f}) has no points to verify a loop with")
     scores = [0.0] * B if scores is None else list(scores)
-    R_ic = torch.as_tensor(R_ic, dtype=_F64)
-    t_ic = torch.as_tensor(t_ic, dtype=_F64)
+    dev = curs[0].point_3d.device  # every keyframe and the extrinsic on the current keyframes' device
+    R_ic = torch.as_tensor(R_ic, dtype=_F64, device=dev)
+    t_ic = torch.as_tensor(t_ic, dtype=_F64, device=dev)
     n_cur = max(c.window_brief.shape[0] for c in curs)
     n_old = max(max(o.brief.shape[0] for o in olds), 1)
     wdesc, wvalid = _pad([c.window_brief for c in curs], n_cur)
-    odesc, ovalid = _pad([o.brief if o.brief.shape[0] else torch.zeros(0, 4, dtype=torch.int64) for o in olds], n_old)
+    odesc, ovalid = _pad([o.brief if o.brief.shape[0] else torch.zeros(0, 4, dtype=torch.int64, device=dev)
+                          for o in olds], n_old)
     midx, _, matched = match_brief(wdesc, odesc, wvalid, ovalid)
     n_match = matched.sum(1)
+    n_match_h = n_match.cpu()  # the per-pair counts on the host once (not one copy per pair)
 
     p3, _ = _pad([c.point_3d.to(_F64) for c in curs], n_cur)
-    onorm, _ = _pad([o.keypoints_norm.to(_F64) if o.keypoints_norm.shape[0] else torch.zeros(0, 2, dtype=_F64)
-                     for o in olds], n_old)
+    onorm, _ = _pad([o.keypoints_norm.to(_F64) if o.keypoints_norm.shape[0]
+                     else torch.zeros(0, 2, dtype=_F64, device=dev) for o in olds], n_old)
     pn = onorm.gather(1, midx.clamp_min(0)[..., None].expand(B, n_cur, 2))
 
     # initial guess = the current camera pose in its raw VIO world (§7.6)
@@ -177,10 +183,13 @@ def verify_loops(
         rel_yaw = normalize_angle(R_to_ypr(oR[sel])[:, 0] - R_to_ypr(PnP_R_old)[:, 0])
         inl = res.inliers & matched[sel]
         n_inl = inl.sum(1)
+        # the small per-pair results on the host once (one copy each, not one per pair and field)
+        ok_h, n_inl_h, inl_h, midx_h = res.ok.cpu(), n_inl.cpu(), inl.cpu(), midx.cpu()
+        rel_t_h, rel_q_h, rel_yaw_h = rel_t.cpu(), rel_q.cpu(), rel_yaw.cpu()
         for k, b in enumerate(sel.tolist()):  # B results, not points
-            ok = bool(res.ok[k])
-            ni = int(n_inl[k]) if ok else 0
-            yaw_k, t_k = float(rel_yaw[k]), rel_t[k].numpy()
+            ok = bool(ok_h[k])
+            ni = int(n_inl_h[k]) if ok else 0
+            yaw_k, t_k = float(rel_yaw_h[k]), rel_t_h[k].numpy()
             if not ok:
                 reason = "pnp_failed"
             elif ni <= MIN_LOOP_MATCHES:
@@ -191,18 +200,19 @@ def verify_loops(
                 reason = "translation"
             else:
                 reason = "accepted"
-            q_k = rel_q[k].numpy().copy()
+            q_k = rel_q_h[k].numpy().copy()
             if not ok:  # no pose: report the identity, not the initial guess echoed back
                 t_k, q_k, yaw_k = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]), 0.0
-            m = inl[k]
-            cur_uv = curs[b].point_2d_uv[m[: curs[b].point_2d_uv.shape[0]]].double().numpy()
-            old_uv = olds[b].keypoints.double()[midx[b][m].clamp_min(0)].numpy() if olds[b].keypoints.shape[0] else None
+            m = inl_h[k]
+            cur_uv = curs[b].point_2d_uv.cpu()[m[: curs[b].point_2d_uv.shape[0]]].double().numpy()
+            old_uv = (olds[b].keypoints.cpu().double()[midx_h[b][m].clamp_min(0)].numpy()
+                      if olds[b].keypoints.shape[0] else None)
             results[b] = LoopResult(curs[b].index, olds[b].index, float(scores[b]), reason == "accepted", reason,
-                                    int(n_match[b]), ni, t_k.copy(), q_k, yaw_k, cur_uv, old_uv)
+                                    int(n_match_h[b]), ni, t_k.copy(), q_k, yaw_k, cur_uv, old_uv)
     for b in range(B):
         if results[b] is None:
             results[b] = LoopResult(curs[b].index, olds[b].index, float(scores[b]), False, "few_matches",
-                                    int(n_match[b]), 0)
+                                    int(n_match_h[b]), 0)
     return results  # type: ignore[return-value]
 
 
@@ -217,9 +227,9 @@ class _SeqState:
     merged: bool = False  # VINS's sequence_loop[s]
 
 
-def _identity_state() -> _SeqState:
-    return _SeqState(torch.eye(3, dtype=_F64), torch.zeros(3, dtype=_F64), torch.eye(3, dtype=_F64),
-                     torch.zeros(3, dtype=_F64))
+def _identity_state(device) -> _SeqState:
+    return _SeqState(torch.eye(3, dtype=_F64, device=device), torch.zeros(3, dtype=_F64, device=device),
+                     torch.eye(3, dtype=_F64, device=device), torch.zeros(3, dtype=_F64, device=device))
 
 
 class PoseGraph:
@@ -236,12 +246,16 @@ class PoseGraph:
         auto_optimize: optimise right after each accepted loop (see the module docstring).
         optimize_iters: VINS's Ceres ``max_num_iterations`` is 5.
         min_loop_gap: VINS queries only keyframes more than 50 indices older.
+        device: where the graph's poses, drift and extrinsic live and its keyframes are verified
+            and optimised (None: the device of ``R_ic`` when it is a tensor, else the CPU).
+            ``add_keyframe`` and ``load`` move keyframes on another device onto it. The place
+            database lives with the vocabulary.
     """
 
     def __init__(self, camera=None, vocabulary: Optional[Vocabulary] = None, mode: str = "4dof",
                  R_ic=None, t_ic=None, pnp_backend: str = "torch",
                  generator: Optional[torch.Generator] = None, auto_optimize: bool = True,
-                 optimize_iters: int = 5, min_loop_gap: int = 50, save_images: bool = False):
+                 optimize_iters: int = 5, min_loop_gap: int = 50, save_images: bool = False, device=None):
         if mode not in ("4dof", "6dof"):
             raise ValueError(f"mode: expected '4dof' or '6dof', got {mode!r}")
         if pnp_backend not in ("torch", "opencv"):
@@ -249,8 +263,13 @@ class PoseGraph:
         self.camera = camera
         self.vocabulary = vocabulary
         self.mode = mode
-        self.R_ic = torch.eye(3, dtype=_F64) if R_ic is None else torch.as_tensor(R_ic, dtype=_F64).reshape(3, 3)
-        self.t_ic = torch.zeros(3, dtype=_F64) if t_ic is None else torch.as_tensor(t_ic, dtype=_F64).reshape(3)
+        if device is None:
+            device = R_ic.device if isinstance(R_ic, torch.Tensor) else "cpu"
+        self.device = dev = torch.device(device)
+        self.R_ic = (torch.eye(3, dtype=_F64, device=dev) if R_ic is None
+                     else torch.as_tensor(R_ic, dtype=_F64, device=dev).reshape(3, 3))
+        self.t_ic = (torch.zeros(3, dtype=_F64, device=dev) if t_ic is None
+                     else torch.as_tensor(t_ic, dtype=_F64, device=dev).reshape(3))
         self.pnp_backend = pnp_backend
         self.generator = torch.Generator().manual_seed(0) if generator is None else generator
         self.auto_optimize = auto_optimize
@@ -273,7 +292,7 @@ class PoseGraph:
     # ------------------------------------------------------------------------------ state access
     def _state(self, sequence: int) -> _SeqState:
         if sequence not in self._seq:
-            self._seq[sequence] = _identity_state()
+            self._seq[sequence] = _identity_state(self.device)
         return self._seq[sequence]
 
     @property
@@ -314,9 +333,9 @@ class PoseGraph:
                             f"{kf.sequence} ({self.keyframes[-1].time:.6f})")
 
     def _bow(self, kf: KeyFrame):
-        K = kf.brief.shape[0]
-        desc = kf.brief.reshape(1, K, 4) if K else torch.zeros(1, 1, 4, dtype=torch.int64)
-        valid = torch.ones(1, max(K, 1), dtype=torch.bool) if K else torch.zeros(1, 1, dtype=torch.bool)
+        K, dev = kf.brief.shape[0], kf.brief.device
+        desc = kf.brief.reshape(1, K, 4) if K else torch.zeros(1, 1, 4, dtype=torch.int64, device=dev)
+        valid = torch.full((1, max(K, 1)), K > 0, dtype=torch.bool, device=dev)
         return self.vocabulary.transform(desc, valid)
 
     def _detect(self, kf: KeyFrame) -> Tuple[int, float, float]:
@@ -334,6 +353,7 @@ class PoseGraph:
             place recognition proposed none.
         """
         self._check_keyframe(kf)
+        kf.to(self.device)  # the graph's keyframes share its device (a no-op when they do)
         st = self._state(kf.sequence)
         kf.vio_T = st.w_r_vio @ kf.origin_vio_T.to(_F64) + st.w_t_vio
         kf.vio_R = st.w_r_vio @ kf.origin_vio_R.to(_F64)
@@ -369,13 +389,13 @@ class PoseGraph:
     def _accept_loop(self, cur: KeyFrame, old: KeyFrame, res: LoopResult) -> None:
         cur.has_loop = True
         cur.loop_index = old.index
-        cur.loop_info = torch.as_tensor(res.loop_info, dtype=_F64)
+        cur.loop_info = torch.as_tensor(res.loop_info, dtype=_F64, device=self.device)
         self.earliest_loop_index = old.index if self.earliest_loop_index < 0 else min(self.earliest_loop_index, old.index)
         st = self._state(cur.sequence)
         if old.sequence != cur.sequence and not st.merged:
             # first loop of this sequence to another one: move the whole sequence (§7.7.4b-c)
-            rel_t = torch.as_tensor(res.relative_t, dtype=_F64)
-            rel_R = quat_to_R(torch.as_tensor(res.relative_q, dtype=_F64))
+            rel_t = torch.as_tensor(res.relative_t, dtype=_F64, device=self.device)
+            rel_R = quat_to_R(torch.as_tensor(res.relative_q, dtype=_F64, device=self.device))
             w_P_cur = old.vio_R @ rel_t + old.vio_T
             w_R_cur = old.vio_R @ rel_R
             if self.mode == "4dof":
@@ -419,16 +439,19 @@ class PoseGraph:
         slot = {k.index: s for s, k in enumerate(win)}
         T = torch.stack([k.vio_T for k in win])
         R = torch.stack([k.vio_R for k in win])
-        seq = torch.tensor([k.sequence for k in win], dtype=torch.int64)
-        fixed = torch.tensor([k.index == first or k.sequence == 0 for k in win])
+        dev = self.device
+        seq = torch.tensor([k.sequence for k in win], dtype=torch.int64, device=dev)
+        fixed = torch.tensor([k.index == first or k.sequence == 0 for k in win], device=dev)
         si, sj = opt.sequential_edges(seq, 4)
         loops = [(slot[k.loop_index], s) for s, k in enumerate(win) if k.has_loop and k.loop_index in slot]
-        li = torch.tensor([a for a, _ in loops], dtype=torch.int64)
-        lj = torch.tensor([b for _, b in loops], dtype=torch.int64)
-        info = torch.stack([win[b].loop_info for _, b in loops]) if loops else torch.zeros(0, 8, dtype=_F64)
+        li = torch.tensor([a for a, _ in loops], dtype=torch.int64, device=dev)
+        lj = torch.tensor([b for _, b in loops], dtype=torch.int64, device=dev)
+        info = (torch.stack([win[b].loop_info for _, b in loops]) if loops
+                else torch.zeros(0, 8, dtype=_F64, device=dev))
         i = torch.cat([si, li])
         j = torch.cat([sj, lj])
-        is_loop = torch.cat([torch.zeros(si.shape[0], dtype=torch.bool), torch.ones(li.shape[0], dtype=torch.bool)])
+        is_loop = torch.cat([torch.zeros(si.shape[0], dtype=torch.bool, device=dev),
+                             torch.ones(li.shape[0], dtype=torch.bool, device=dev)])
         if self.mode == "4dof":
             ypr = R_to_ypr(R)
             t_meas_s, yaw_meas_s = opt.measurements_4dof(T, R, si, sj)
@@ -457,7 +480,7 @@ class PoseGraph:
             st = self._state(s_id)
             if self.mode == "4dof":
                 self.yaw_drift = float(R_to_ypr(k.R_w_i)[0] - R_to_ypr(k.vio_R)[0])
-                st.r_drift = yaw_to_R(torch.tensor(self.yaw_drift, dtype=_F64))
+                st.r_drift = yaw_to_R(torch.tensor(self.yaw_drift, dtype=_F64, device=dev))
             else:
                 st.r_drift = k.R_w_i @ k.vio_R.T
             st.t_drift = k.T_w_i - st.r_drift @ k.vio_T
@@ -476,22 +499,23 @@ class PoseGraph:
         keyframe's) -> its loop-corrected pose. ``T (..., 3)``, ``R (..., 3, 3)`` float."""
         seq = (self.keyframes[-1].sequence if self.keyframes else 1) if sequence is None else sequence
         st = self._state(seq)
-        T = torch.as_tensor(T, dtype=_F64)
-        R = torch.as_tensor(R, dtype=_F64)
+        T = torch.as_tensor(T, dtype=_F64, device=self.device)
+        R = torch.as_tensor(R, dtype=_F64, device=self.device)
         rd = st.r_drift @ st.w_r_vio
         return (rd @ T[..., None])[..., 0] + st.r_drift @ st.w_t_vio + st.t_drift, rd @ R
 
     def poses(self, which: str = "corrected"):
         """``(time (N,) float64, T (N, 3), R (N, 3, 3))`` of every keyframe: ``"corrected"``
         (loop-corrected), ``"vio"`` (in the pose-graph world) or ``"origin"`` (raw VIO)."""
+        dev = self.device
         if not self.keyframes:
-            z = torch.zeros(0, dtype=_F64)
-            return z, torch.zeros(0, 3, dtype=_F64), torch.zeros(0, 3, 3, dtype=_F64)
+            z = torch.zeros(0, dtype=_F64, device=dev)
+            return z, torch.zeros(0, 3, dtype=_F64, device=dev), torch.zeros(0, 3, 3, dtype=_F64, device=dev)
         attr = {"corrected": ("T_w_i", "R_w_i"), "vio": ("vio_T", "vio_R"), "origin": ("origin_vio_T", "origin_vio_R")}
         if which not in attr:
             raise ValueError(f"which: expected one of {sorted(attr)}, got {which!r}")
         a, b = attr[which]
-        t = torch.tensor([k.time for k in self.keyframes], dtype=_F64)
+        t = torch.tensor([k.time for k in self.keyframes], dtype=_F64, device=dev)
         return t, torch.stack([getattr(k, a).to(_F64) for k in self.keyframes]), \
             torch.stack([getattr(k, b).to(_F64) for k in self.keyframes])
 
@@ -500,13 +524,14 @@ class PoseGraph:
         from ..trajectory import Trajectory
 
         t, T, R = self.poses(which)
-        return Trajectory(t, T, R_to_quat(R) if R.shape[0] else torch.zeros(0, 4, dtype=_F64))
+        return Trajectory(t, T, R_to_quat(R) if R.shape[0] else torch.zeros(0, 4, dtype=_F64, device=R.device))
 
     def csv_text(self) -> str:
         """``vins_result_loop.csv`` (§7.11): ``time·1e9`` with 0 decimals, then P.x P.y P.z Q.w
         Q.x Q.y Q.z with 5 decimals, each followed by a comma."""
         t, T, R = self.poses()
         q = R_to_quat(R) if R.shape[0] else R.new_zeros(0, 4)
+        t, T, q = t.cpu(), T.cpu(), q.cpu()  # formatted on the host: one copy each, not one per value
         lines = []
         for k in range(t.shape[0]):
             vals = [f"{t[k].item() * 1e9:.0f}"] + [f"{v:.5f}" for v in (*T[k].tolist(), *q[k].tolist())]
@@ -553,8 +578,8 @@ class PoseGraph:
                 vals = [f" {k.index:d}", f"{k.time:f}"] + [f"{v:f}" for v in (*k.vio_T.tolist(), *k.T_w_i.tolist(), *vq, *pq)]
                 vals += [f"{k.loop_index:d}"] + [f"{v:f}" for v in info] + [f"{k.keypoints.shape[0]:d}"]
                 lines.append(" ".join(vals) + "\n")
-                kp = k.keypoints.double().numpy()
-                kn = k.keypoints_norm.double().numpy()
+                kp = k.keypoints.double().cpu().numpy()
+                kn = k.keypoints_norm.double().cpu().numpy()
                 (tmp / f"{k.index}_keypoints.txt").write_text(
                     "".join(f"{a:f} {b:f} {c:f} {d:f}\n" for (a, b), (c, d) in zip(kp, kn)))
                 (tmp / f"{k.index}_briefdes.dat").write_text(_brief_to_text(k.brief))
@@ -583,7 +608,7 @@ class PoseGraph:
             kf = KeyFrame.loaded(index=base + len(new), time=r["time"], T=r["T"], R=quat_to_R(r["q"]),
                                  keypoints=kp, keypoints_norm=kn, brief=desc,
                                  loop_index=r["loop_index"], loop_info=r["loop_info"])
-            new.append(kf)
+            new.append(kf.to(self.device))
         for kf in new:
             if kf.loop_index >= 0:
                 if kf.loop_index not in remap:

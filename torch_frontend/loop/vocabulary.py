@@ -163,6 +163,13 @@ def _majority(bits: torch.Tensor, grp: torch.Tensor, m: int) -> torch.Tensor:
     return _pack_bits(2.0 * counts > sizes[:, None])
 
 
+def _rand(n: int, generator: Optional[torch.Generator], device: torch.device) -> torch.Tensor:
+    """``(n,)`` float64 uniforms on ``device``, drawn on the generator's own device (a CPU
+    generator with CUDA data draws on the host and uploads; ``torch.rand`` would reject it)."""
+    gdev = device if generator is None else generator.device
+    return torch.rand(n, generator=generator, device=gdev, dtype=torch.float64).to(device)
+
+
 def _kmedians_level(x, bits, g, m, k, generator, max_iter):
     """Binary k-medians with k-means++ seeding for ``m`` independent groups at once.
 
@@ -176,7 +183,7 @@ def _kmedians_level(x, bits, g, m, k, generator, max_iter):
     cent = torch.zeros(m, k, 4, dtype=torch.int64, device=dev)
     ncent = torch.ones(m, dtype=torch.int64, device=dev)
     # 1. First centre uniformly at random per group (max of iid uniforms = uniform choice).
-    u = torch.rand(n, generator=generator, device=dev, dtype=torch.float64)
+    u = _rand(n, generator, dev)
     cent[:, 0] = x[_segment_argmax(u, g, m)]
     mind = _hamming_packed(x, cent[g, 0]).to(torch.float64)
     going = torch.ones(m, dtype=torch.bool, device=dev)
@@ -187,7 +194,7 @@ def _kmedians_level(x, bits, g, m, k, generator, max_iter):
             break
         # 2. Draw one point per group with probability ∝ D(x): Efraimidis–Spirakis keys
         # log(u)/w, max per group (w = 0 gives -inf and is never drawn while some w > 0).
-        u = torch.rand(n, generator=generator, device=dev, dtype=torch.float64).clamp_min(1e-300)
+        u = _rand(n, generator, dev).clamp_min(1e-300)
         key = torch.where(mind > 0, torch.log(u) / mind.clamp_min(1e-300), torch.full_like(mind, -math.inf))
         pick = _segment_argmax(key, g, m)
         cent[going, c] = x[pick[going]]
@@ -508,7 +515,8 @@ class Vocabulary:
             desc: (D, K, 4) int64 packed descriptors of D training documents (images); any
                 leading shape ``(..., K, 4)`` is flattened to D documents.
             valid: (D, K) bool mask (default all).
-            k, L: branching factor and depth. generator: torch.Generator for the seeding.
+            k, L: branching factor and depth. generator: torch.Generator for the seeding (any
+                device: a CPU one with device descriptors draws on the host and uploads).
             max_iter: cap on k-medians iterations per level (None = until no assignment changes,
                 as DBoW2).
         Returns:
@@ -537,7 +545,8 @@ class Vocabulary:
         leaf[0] = False
         node_word = torch.full((M,), -1, dtype=torch.int64, device=desc.device)
         node_word[leaf] = torch.arange(int(leaf.sum()), device=desc.device)
-        voc = cls(k, L, parent, ndesc, torch.zeros(M, dtype=torch.float64), node_word,
+        # the constructor builds the tree on the host (numpy); the weights are set on the device below
+        voc = cls(k, L, parent, ndesc, torch.zeros(M, dtype=torch.float64, device="cpu"), node_word,
                   scoring=scoring, weighting=weighting)
         voc.to(desc.device)
         W = voc.num_words

@@ -13,9 +13,11 @@ Convention:
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Dict, Optional, Sequence, Union
 
 import torch
+import torch.utils._pytree as pytree
 
 from .._checks import check_shape
 from ..config import TrackerConfig, load_config
@@ -58,6 +60,38 @@ class _StageSpan:
         return False
 
 
+def _pure_step(state: TrackerState, img, t, params: TrackerParams, right, active):
+    """The compiled unit: :func:`step_impl` on validated inputs, no stage hooks (their timers
+    synchronise)."""
+    return step_impl(state, img, t, params, right=right, active=active)
+
+
+class _CompiledStep:
+    """A compiled step with the eager fallback and, for CUDA graphs, outputs cloned out of the
+    graph's memory pool (the next replay overwrites them)."""
+
+    def __init__(self, fn, cuda_graphs: bool, fallback: bool):
+        self.fn, self.cuda_graphs, self.fallback = fn, cuda_graphs, fallback
+        self.failed: Optional[BaseException] = None
+
+    def __call__(self, state, img, t, params, right, active):
+        if self.failed is None:
+            try:
+                if self.cuda_graphs:
+                    torch.compiler.cudagraph_mark_step_begin()
+                out = self.fn(state, img, t, params, right, active)
+                if self.cuda_graphs:
+                    out = pytree.tree_map(lambda x: x.clone() if isinstance(x, torch.Tensor) else x, out)
+                return out
+            except Exception as exc:  # the compiler failed (not a bad input: those are checked before)
+                if not self.fallback:
+                    raise
+                self.failed = exc
+                warnings.warn(f"FeatureTracker.compile: the compiled step failed ({type(exc).__name__}: {exc}); "
+                              f"running eager from now on", RuntimeWarning, stacklevel=3)
+        return _pure_step(state, img, t, params, right, active)
+
+
 class FeatureTracker:
     """The VINS front end for ``num_streams`` streams tracked together.
 
@@ -71,6 +105,17 @@ class FeatureTracker:
             analytic disc of ``torch_frontend.fisheye_mask``.
         seed: F-RANSAC seed, used for every problem of every call (OpenCV re-seeds identically on
             each call), so a stream's result does not depend on the other streams.
+        capturable: True: every per-frame operation is shape-static and free of host
+            synchronisation (fixed budgets, every stage for every stream under masks, a kernel
+            count independent of B), so the step can be captured in a CUDA graph or compiled whole
+            (:meth:`compile`); ``frame.overflow`` says where a budget was too small. False: the
+            eager path tuned for the CPU (early exits, compaction, stream groups). None (default):
+            True on a non-CPU device, False on the CPU (the name follows ``torch.optim``'s
+            ``capturable``). Both paths give identical results wherever ``frame.overflow`` is False.
+        lk_iter_budget: capturable only: LK iterations per pyramid level (None: VINS's 30, exact;
+            an int, or a tuple per level, level 0 first). Each iteration is ~21 launches per level
+            whatever B, so e.g. ``(16, 14, 12, 10)`` saves ~1,400 launches per step; a point that
+            would need more iterations sets ``frame.overflow`` for its stream.
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
@@ -89,6 +134,8 @@ class FeatureTracker:
         dtype: torch.dtype = torch.float32,
         fisheye_mask: Optional[torch.Tensor] = None,
         seed: int = 0,
+        capturable: Optional[bool] = None,
+        lk_iter_budget=None,
     ):
         if not isinstance(config, TrackerConfig):
             config = load_config(config)
@@ -100,12 +147,17 @@ class FeatureTracker:
         self.B = int(num_streams)
         self.device = torch.device(device)
         self.dtype = dtype
+        if capturable is None:
+            capturable = self.device.type != "cpu"
+        self.capturable = bool(capturable)
         try:
-            params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask)
+            params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask,
+                                               capturable=self.capturable, lk_iter_budget=lk_iter_budget)
         except ValueError as exc:
             raise ValueError(f"config {config.path}: {exc}") from None
         self.params = params.to(self.device)
         self._stage = _StageTimer()
+        self._compiled: Optional[_CompiledStep] = None
         self.reset()
 
     # ------------------------------------------------------------------ read-only views
@@ -136,12 +188,33 @@ class FeatureTracker:
         mask, detection, undistort) into ``stage_times``."""
         self._stage.times = {} if enabled else None
 
-    def compile(self, enable: bool = True) -> None:
-        """Use ``torch.compile`` for the LK iteration kernel (the hot loop), with eager as the
-        fallback (``enable=False``). Compilation happens on the first call (seconds to minutes)."""
-        from ..lk import compile_step
+    def compile(self, enable: bool = True, *, fallback: bool = True, **compile_kwargs) -> None:
+        """Compile the step with ``torch.compile`` (``enable=False``: back to eager).
 
-        compile_step(enable)
+        With ``capturable=True`` the whole step after the input checks is compiled as one graph
+        (``fullgraph=True``; on CUDA ``mode="reduce-overhead"``, i.e. CUDA graphs: launches are
+        replayed, not issued one by one); ``compile_kwargs`` (``mode``, ``backend``, ``dynamic``,
+        ...) override those defaults. The graph is built on the first call (seconds to minutes);
+        with ``fallback`` (default) a step that fails to compile warns once and runs eager from then
+        on, so a tracker never stops because of the compiler. The outputs of a CUDA-graph replay
+        live in the graph's memory pool: the step clones the new state and frame out of it, so
+        they stay valid after the next replay.
+
+        With ``capturable=False`` (the CPU-tuned path, whose early exits need the host) only the LK
+        iteration kernel is compiled (``torch_frontend.lk.compile_step``)."""
+        if not self.capturable:
+            from ..lk import compile_step
+
+            compile_step(enable, **compile_kwargs)
+            return
+        if not enable:
+            self._compiled = None
+            return
+        opts = dict(fullgraph=True)
+        if self.device.type == "cuda":
+            opts["mode"] = "reduce-overhead"
+        opts.update(compile_kwargs)
+        self._compiled = _CompiledStep(torch.compile(_pure_step, **opts), self.device.type == "cuda", fallback)
 
     # ------------------------------------------------------------------ state
     def initial_state(self) -> TrackerState:
@@ -168,6 +241,8 @@ class FeatureTracker:
         """
         img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
                                           config_name=f"the config {self.config.path}")
+        if self._compiled is not None:
+            return self._compiled(state, img, t, self.params, r, arrived)
         return step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage)
 
     def track(self, images, timestamps, right=None, active=None) -> FeatureFrame:

@@ -30,6 +30,10 @@ class FeatureFrame:
         restarted: (B,) bool, a restart was signalled (gap > 1 s or time went backwards).
         tracked: (B,) bool, the image was processed (mono skips first images and restarts).
         timestamps: (B,) float64 seconds.
+        overflow: (B,) bool, a fixed budget of the capturable step (LK iterations, RANSAC
+            hypotheses, corner candidates, greedy rounds) was too small for OpenCV's exact answer
+            in this step, so the stream's results may differ from the default path. Always False
+            on the default path (it has no budgets) and, by the sizes chosen, on every test sequence.
         right_uv, right_xy, right_velocity, right_valid: stereo (fusion) observations of the same
             slots in camera 1, or None.
     """
@@ -46,6 +50,7 @@ class FeatureFrame:
     restarted: torch.Tensor
     tracked: torch.Tensor
     timestamps: torch.Tensor
+    overflow: Optional[torch.Tensor] = None
     prev_uv: Optional[torch.Tensor] = None
     prev_valid: Optional[torch.Tensor] = None
     right_uv: Optional[torch.Tensor] = None

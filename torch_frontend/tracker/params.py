@@ -22,8 +22,10 @@ import torch
 from .._checks import check_shape
 from ..corners import check_block
 from ..equalize import check_grid
+from ..errors import ConfigError
 from ..lk import LKOptions
 from ..masks import fisheye_mask as analytic_fisheye_mask
+from ..ransac import METHODS as F_METHODS
 
 MODES = ("mono", "fusion")
 
@@ -36,12 +38,18 @@ class TrackerParams:
         mode: ``"mono"`` (VINS-Mono ``feature_tracker``) or ``"fusion"`` (VINS-Fusion tracker).
         width, height: ``COL``, ``ROW`` of the config (mono checks images against them; fusion
             uses each image's actual size, spec §6.2).
-        max_cnt, min_dist, freq, F_threshold, equalize, fisheye, flow_back: the VINS keys
+        max_cnt, min_dist, freq, F_threshold, equalize, fisheye, flow_back: the VINS keys; F_method
+            (this library's key): rejectWithF's estimator, ``"opencv"`` (VINS) or ``"lo"`` (LO-RANSAC)
             (``freq`` already mapped 0 -> 100 by the config reader).
         seed: ``cv::RNG`` seed of every F-RANSAC problem (OpenCV re-seeds identically per call).
         camera, camera1: the camodocal models of camera 0 and (fusion stereo) camera 1
             (``CameraModel`` modules, float64 on the tracker's device).
         fisheye_mask: ``(H, W)`` uint8 (255 = allowed) for mono ``fisheye: 1`` configs, else None.
+        capturable: the step is shape-static and free of host synchronisation (CUDA graphs,
+            ``torch.compile(fullgraph=True)``): fixed budgets with per-element freezing instead of
+            early exits, every stage runs for every stream under masks, and the kernel count does
+            not depend on B. False: the eager path tuned for the CPU (early exit, compaction,
+            stream groups). Both give identical results wherever ``frame.overflow`` is False.
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -60,6 +68,7 @@ class TrackerParams:
     camera: Any = dataclasses.field(default=None, compare=False, repr=False)
     camera1: Any = dataclasses.field(default=None, compare=False, repr=False)
     fisheye_mask: Optional[Any] = dataclasses.field(default=None, compare=False, repr=False)
+    capturable: bool = False
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream
@@ -75,6 +84,10 @@ class TrackerParams:
     lk_max_iters: int = 30
     lk_eps: float = 0.01
     lk_min_eig_threshold: float = 1e-4
+    # capturable step only: LK iterations run per level (None = lk_max_iters, exact; an int or one
+    # per level, level 0 first). A smaller budget is fewer launches per step; a point still
+    # iterating when it ends raises frame.overflow (lk.LKOptions.iter_budget)
+    lk_iter_budget: Any = None
     # VINS-Fusion: LK from a prediction and the temporal backward check use one level, spec §6.2
     fusion_short_max_level: int = 1
     # VINS-Fusion: fewer tracks from the prediction than this => plain LK instead, spec §6.2
@@ -90,6 +103,9 @@ class TrackerParams:
     focal_length: float = 460.0  # FOCAL_LENGTH of the virtual pinhole, principal point (COL/2, ROW/2)
     ransac_confidence: float = 0.99
     ransac_max_iters: int = 1000  # OpenCV's default cap on minimal samples (spec §3.8)
+    # the estimator (config key F_method): "opencv" = VINS's cv::findFundamentalMat, exactly;
+    # "lo" = LO-RANSAC, the same samples and 1 px test with local optimisation (ransac.find_fundamental)
+    F_method: str = "opencv"
 
     # --- goodFeaturesToTrack, spec §2 / §5.2: Shi-Tomasi on 3x3 blocks (Harris' k unused)
     gftt_quality_level: float = 0.01
@@ -111,6 +127,8 @@ class TrackerParams:
             raise ValueError(f"image size: expected positive width and height, got {self.width}x{self.height}")
         if not self.freq > 0:
             raise ValueError(f"freq: expected a publish rate > 0 Hz (a config's 0 reads as 100), got {self.freq}")
+        if self.F_method not in F_METHODS:
+            raise ValueError(f"F_method: expected one of {F_METHODS}, got {self.F_method!r}")
         if not math.isfinite(self.F_threshold):
             raise ValueError(f"F_threshold: expected a finite number of pixels, got {self.F_threshold}")
         for name in ("camera", "camera1"):
@@ -120,6 +138,14 @@ class TrackerParams:
                 key, why = problems[0]
                 raise ValueError(f"{name}.{key}: {why}")
         self.check_image_size(self.height, self.width)
+        # the derived options are built here, not on first use inside a traced step: Python 3.11's
+        # cached_property takes a lock on first access, which torch.compile cannot trace
+        if isinstance(self.lk_iter_budget, list):  # params stay hashable
+            object.__setattr__(self, "lk_iter_budget", tuple(self.lk_iter_budget))
+        try:
+            self.lk_options, self.lk_short_options  # noqa: B018
+        except ConfigError as exc:  # name the tracker's field, not LKOptions'
+            raise ConfigError(f"lk_iter_budget / lk_*: {exc}") from None
 
     def check_image_size(self, height: int, width: int) -> None:
         """The kernels' size checks for ``height x width`` images (the step calls the kernels
@@ -136,7 +162,8 @@ class TrackerParams:
         fields = dict(
             mode=mode, width=int(config.image_width), height=int(config.image_height),
             max_cnt=int(config.max_cnt), min_dist=int(config.min_dist), freq=int(config.freq),
-            F_threshold=float(config.F_threshold), equalize=bool(config.equalize), fisheye=bool(config.fisheye),
+            F_threshold=float(config.F_threshold), F_method=str(getattr(config, "F_method", "opencv")),
+            equalize=bool(config.equalize), fisheye=bool(config.fisheye),
             flow_back=bool(config.flow_back), seed=int(seed), camera=config.camera, camera1=config.camera1,
         )
         fields.update(overrides)
@@ -166,7 +193,7 @@ class TrackerParams:
         """VINS's LK call (spec §2), OpenCV's fixed point (the tracker's pyramids are 8-bit)."""
         return LKOptions(win_size=(self.lk_win_size, self.lk_win_size), max_level=self.lk_max_level,
                          max_iters=self.lk_max_iters, eps=self.lk_eps, min_eig_threshold=self.lk_min_eig_threshold,
-                         fixed_point=True, early_exit=True)
+                         fixed_point=True, early_exit=not self.capturable, iter_budget=self.lk_iter_budget)
 
     @functools.cached_property
     def lk_short_options(self) -> LKOptions:

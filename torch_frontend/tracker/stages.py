@@ -23,6 +23,8 @@ from typing import NamedTuple, Optional, Tuple
 
 import torch
 
+from .._checks import gather_slots
+from .._compiler import constant_result
 from ..corners import _good_features_impl
 from ..equalize import _clahe_impl
 from ..lk import _forward_backward_impl, _track_lk_impl
@@ -44,11 +46,22 @@ def no_stage(name: str):
 # images
 
 
+def merge_overflow(*flags: Optional[Tensor]) -> Optional[Tensor]:
+    """``(B,)`` OR of the stages' overflow flags (None: a stage on the default path, which is exact)."""
+    out = None
+    for f in flags:
+        if f is not None:
+            out = f if out is None else out | f
+    return out
+
+
 def equalize(img: Tensor, params: TrackerParams) -> Tensor:
     """CLAHE (``createCLAHE(3.0, 8x8)``, spec §5.3) when the mode equalises, else the image."""
     if not params.uses_clahe:
         return img
     gx, gy = params.clahe_tile_grid
+    if params.capturable:
+        return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=True).unsqueeze(1)
     return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy).unsqueeze(1)
 
 
@@ -58,12 +71,18 @@ def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
     return _build_pyramid_impl(img, params.lk_max_level, with_gradients=False, round_levels=True)
 
 
-def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid]) -> Pyramid:
+def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid], capturable: bool = False) -> Pyramid:
     """Per stream: ``new`` where ``mask``, else ``old``. The common case (every stream) keeps ``new``
-    as it is, with its padded-level cache (one host sync to know)."""
-    if old is None or bool(mask.all()):
+    as it is, with its padded-level cache (one host sync to know). ``capturable``: always the
+    per-stream select (no sync), the padded levels cached on both selected as well."""
+    if old is None or (not capturable and bool(mask.all())):
         return new
-    return Pyramid(levels=[where_streams(mask, n, o) for n, o in zip(new.levels, old.levels)], rounded=new.rounded)
+    out = Pyramid(levels=[where_streams(mask, n, o) for n, o in zip(new.levels, old.levels)], rounded=new.rounded)
+    if capturable:
+        # the LK pads the next image's levels once and reuses them when it is the previous image;
+        # keep that reuse across the select (cached entries of both pyramids, same keys)
+        out._padded = {k: where_streams(mask, v, old._padded[k]) for k, v in new._padded.items() if k in old._padded}
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -71,19 +90,26 @@ def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid]) -> Pyrami
 
 
 def _lk(prev: Pyramid, nxt: Pyramid, pts: Tensor, valid: Tensor, params: TrackerParams, *, short: bool = False,
-        init_pts: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+        init_pts: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
     """VINS's LK call (21x21, 30 iterations, eps 0.01, minEig 1e-4, spec §2; ``short``: VINS-Fusion's
-    one-level call), OpenCV's fixed point on the 8-bit pyramids."""
-    return _track_lk_impl(prev, nxt, pts, valid, init_pts, params.lk_short_options if short else params.lk_options)
+    one-level call), OpenCV's fixed point on the 8-bit pyramids. Returns ``(pts, status, overflow)``
+    (overflow None on the default path)."""
+    opts = params.lk_short_options if short else params.lk_options
+    if params.capturable:
+        return _track_lk_impl(prev, nxt, pts, valid, init_pts, opts, return_overflow=True)
+    return (*_track_lk_impl(prev, nxt, pts, valid, init_pts, opts), None)
 
 
 def _flow_back(prev: Pyramid, nxt: Pyramid, pts: Tensor, out: Tensor, status: Tensor, params: TrackerParams, *,
-               levels: int, from_start: bool) -> Tensor:
+               levels: int, from_start: bool) -> Tuple[Tensor, Optional[Tensor]]:
     """VINS-Fusion's FLOW_BACK check of a forward result ``out`` (spec §6.3): track back with
     ``levels`` levels from ``out`` (starting at ``pts`` when ``from_start``) and keep the points that
-    come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS)."""
-    return _forward_backward_impl(prev, nxt, pts, out, status, params.lk_options, levels, params.flow_back_threshold,
-                                  from_start)
+    come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS).
+    Returns ``(status, overflow)``."""
+    args = (prev, nxt, pts, out, status, params.lk_options, levels, params.flow_back_threshold, from_start)
+    if params.capturable:
+        return _forward_backward_impl(*args, return_overflow=True)
+    return _forward_backward_impl(*args), None
 
 
 def in_border(pts: Tensor, width: int, height: int, border: int = 1) -> Tensor:
@@ -95,36 +121,41 @@ def in_border(pts: Tensor, width: int, height: int, border: int = 1) -> Tensor:
 
 
 def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Tensor, tracked: Tensor,
-                   has_prediction: Tensor, params: TrackerParams, *, stage=no_stage) -> FeatureTable:
+                   has_prediction: Tensor, params: TrackerParams, *,
+                   stage=no_stage) -> Tuple[FeatureTable, Optional[Tensor]]:
     """``readImage``'s tracking part (spec §3.6 step 5-6, §6.2 step 2-3) for the ``run`` streams.
 
     LK from the previous pyramid (fusion: from the prediction with one level where the stream has
     one, falling back to plain LK when fewer than ``prediction_min_tracked`` points track; and the
     FLOW_BACK check), the ``inBorder`` test on the image's own size, a stable compaction, then
     ``track_cnt += 1`` for every feature of the ``tracked`` streams. ``prev_pts`` holds the pixels
-    before this step.
+    before this step. Returns ``(table, overflow)`` (the LK budgets' flag; None on the default path).
     """
     run_slots = run.unsqueeze(-1)
     lk_valid = table.valid & run_slots
     H, W = pyr.levels[0].shape[-2:]
     fusion = params.mode == "fusion"
     with stage("lk"):
-        if fusion and bool(has_prediction.any()):
-            nxt_p, st_p = _lk(prev_pyr, pyr, table.pts, lk_valid, params, short=True, init_pts=table.prediction)
-            nxt, st = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+        # capturable: the prediction branch runs whenever the mode can have predictions (no sync)
+        if fusion and (params.capturable or bool(has_prediction.any())):
+            nxt_p, st_p, of_p = _lk(prev_pyr, pyr, table.pts, lk_valid, params, short=True, init_pts=table.prediction)
+            nxt, st, of = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
             use = has_prediction & (st_p.sum(1) >= params.prediction_min_tracked)
             nxt, st = where_streams(use, nxt_p, nxt), where_streams(use, st_p, st)
+            of = None if of is None else torch.where(use, of_p, of)
         else:
-            nxt, st = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+            nxt, st, of = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
         if fusion and params.flow_back:
-            st = _flow_back(prev_pyr, pyr, table.pts, nxt, st, params, levels=params.fusion_short_max_level,
-                            from_start=True)
+            st, of_b = _flow_back(prev_pyr, pyr, table.pts, nxt, st, params, levels=params.fusion_short_max_level,
+                                  from_start=True)
+            of = merge_overflow(of, of_b)
     st = st & in_border(nxt, W, H, params.border_size)
     moved = table.replace(prev_pts=table.pts,
                           pts=torch.where(run_slots.unsqueeze(-1), nxt.to(table.pts.dtype), table.pts))
     table = moved.compact(torch.where(run_slots, table.valid & st, table.valid))
     cnt = table.track_cnt
-    return table.replace(track_cnt=torch.where(table.valid & tracked.unsqueeze(-1), cnt + 1, cnt))
+    of = None if of is None else of & run
+    return table.replace(track_cnt=torch.where(table.valid & tracked.unsqueeze(-1), cnt + 1, cnt)), of
 
 
 # ---------------------------------------------------------------------------------------------
@@ -147,40 +178,58 @@ def lift_normalised(camera, pts: Tensor, valid: Tensor) -> Tensor:
     return torch.where(valid.unsqueeze(-1), xy, torch.zeros_like(xy)).to(pts.dtype)
 
 
+@functools.lru_cache(maxsize=32)
+def _pinhole_centre(width: int, height: int, device) -> Tensor:
+    """The virtual pinhole's principal point ``(COL / 2, ROW / 2)`` (2,) float64, built once per device
+    (a per-call ``torch.tensor`` would be a blocking host-to-device copy on CUDA)."""
+    return torch.tensor([width / 2.0, height / 2.0], dtype=torch.float64, device=device)
+
+
 def virtual_pinhole(camera, pts: Tensor, valid: Tensor, params: TrackerParams) -> Tensor:
     """rejectWithF's points: lifted, on the 460-px virtual pinhole with principal point
     ``(COL / 2, ROW / 2)`` (spec §3.8), float64 pixels."""
     xy = lift_normalised(camera, pts, valid).to(torch.float64)
-    c = torch.tensor([params.width / 2.0, params.height / 2.0], dtype=torch.float64, device=pts.device)
-    return params.focal_length * xy + c
+    return params.focal_length * xy + _pinhole_centre(params.width, params.height, pts.device)
 
 
 def reject_with_f(table: FeatureTable, publish: Tensor, camera, params: TrackerParams, *,
-                  stage=no_stage) -> FeatureTable:
+                  stage=no_stage) -> Tuple[FeatureTable, Optional[Tensor]]:
     """``rejectWithF`` (spec §3.8) on the ``publish`` streams: F-RANSAC between ``prev_pts`` and
-    ``pts`` on the virtual pinhole, then a compaction by the inlier mask.
+    ``pts`` on the virtual pinhole, then a compaction by the inlier mask. Returns ``(table,
+    overflow)`` (RANSAC's hypothesis block too small; None on the default path).
 
     The RANSAC kernel applies VINS's rule itself: below 8 points (or when no model is found) it
-    reports ``ok = False`` and the stream keeps every feature.
+    reports ``ok = False`` and the stream keeps every feature. ``capturable``: RANSAC runs for every
+    stream (the others masked out), with no host sync to skip it. ``params.F_method``: ``"opencv"``
+    (VINS, exact) or ``"lo"`` (LO-RANSAC: the same samples and test, locally optimised models).
     """
-    if not bool(publish.any()):  # host sync: no stream publishes (every other frame at 20 Hz)
-        return table
+    if not params.capturable and not bool(publish.any()):  # host sync: nobody publishes (every other frame)
+        return table, None
     fv = table.valid & publish.unsqueeze(-1)
-    p1 = virtual_pinhole(camera, table.prev_pts, fv, params)
-    p2 = virtual_pinhole(camera, table.pts, fv, params)
+    # both point sets lifted in one call (one set of kernels)
+    p12 = virtual_pinhole(camera, torch.cat((table.prev_pts, table.pts), 1), torch.cat((fv, fv), 1), params)
+    p1, p2 = p12.split(table.capacity, 1)
     # one fixed seed per call, as OpenCV re-seeds its RNG identically on every call: a stream's
     # result then depends neither on the other streams nor on the call history
     threshold, confidence = opencv_threshold_confidence(params.F_threshold, params.ransac_confidence)
     with stage("ransac"):
-        res = _find_fundamental_impl(p1, p2, fv, threshold, confidence, params.ransac_max_iters,
-                                     _ransac_states(table.batch, params.seed), None)
+        args = (p1, p2, fv, threshold, confidence, params.ransac_max_iters, _ransac_states(table.batch, params.seed),
+                None)
+        res = _find_fundamental_impl(*args, capturable=params.capturable, method=params.F_method)
     apply = (publish & res.ok).unsqueeze(-1)
-    return table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
+    table = table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
+    return table, (res.overflow & publish if params.capturable else None)
+
+
+@constant_result
+def _ransac_states(batch: int, seed: int) -> tuple:
+    """The ``cv::RNG`` state of every stream's problem (the same seed for all), computed once (a
+    constant for ``torch.compile``: dynamo bakes the tuple in instead of tracing the seeding)."""
+    return _ransac_states_cached(batch, seed)
 
 
 @functools.lru_cache(maxsize=16)
-def _ransac_states(batch: int, seed: int) -> tuple:
-    """The ``cv::RNG`` state of every stream's problem (the same seed for all), computed once."""
+def _ransac_states_cached(batch: int, seed: int) -> tuple:
     return tuple(_seeds(batch, seed=seed))
 
 
@@ -190,10 +239,19 @@ def _ransac_states(batch: int, seed: int) -> tuple:
 
 class Detection(NamedTuple):
     """The streams that detect this step and setMask's masks for them (``rows`` in stream order;
-    ``mask (len(rows), H, W)`` uint8, None when no stream detects)."""
+    ``mask (len(rows), H, W)`` uint8, None when no stream detects). Capturable: ``rows`` is every
+    stream, ``detect (B,)`` says which ones detect (None on the default path, where ``rows`` are
+    exactly the detecting streams)."""
 
     rows: Tensor
     mask: Optional[Tensor]
+    detect: Optional[Tensor] = None
+
+
+@functools.lru_cache(maxsize=32)
+def _stream_rows(batch: int, device) -> Tensor:
+    """``arange(B)`` on ``device``, built once (the capturable path's "every stream")."""
+    return torch.arange(batch, device=device)
 
 
 def _rows_of(table: FeatureTable, rows: Tensor, x: Tensor) -> Tensor:
@@ -201,19 +259,23 @@ def _rows_of(table: FeatureTable, rows: Tensor, x: Tensor) -> Tensor:
 
 
 def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_mask: Optional[Tensor],
-             height: int, width: int, *, stage=no_stage) -> Tuple[FeatureTable, Detection]:
+             height: int, width: int, *, stage=no_stage) -> Tuple[FeatureTable, Detection, Optional[Tensor]]:
     """VINS ``setMask`` (spec §3.7) for the ``detect`` streams: features sorted by track count
     (descending; ties by slot order: a stable sort, where VINS's ``std::sort`` is unstable, see the
     spec), each kept iff its rounded pixel is still 255 in the mask, which then gets a filled disc of
     radius ``min_dist``; dropped features leave the table.
 
     Only the detecting streams pay for the mask (mono: the published ones, about one frame in two at
-    20 Hz with freq 10): one host sync picks them.
+    20 Hz with freq 10): one host sync picks them. ``capturable``: every stream, the others
+    unchanged by masks (no sync); the third value is the overflow flag of the fixed rounds (None
+    on the default path).
     """
     B, K = table.valid.shape
+    if params.capturable:
+        return _set_mask_static(table, detect, params, base_mask, height, width, stage)
     rows = detect.nonzero().flatten()
     if rows.numel() == 0:
-        return table, Detection(rows, None)
+        return table, Detection(rows, None), None
     valid, cnt = _rows_of(table, rows, table.valid), _rows_of(table, rows, table.track_cnt)
     key = torch.where(valid, cnt, torch.full_like(cnt, -1))
     order = torch.sort(-key, dim=1, stable=True).indices
@@ -234,18 +296,59 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
         keep_full = table.valid.clone()
         keep_full[rows] = keep
         keep = keep_full
-    return table.permute(order).compact(keep), Detection(rows, mask)
+    return table.permute(order).compact(keep), Detection(rows, mask), None
+
+
+def _setmask_order(table: FeatureTable) -> Tensor:
+    """setMask's visiting order ``(B, K)``: track count descending, ties by slot (stable), empty last."""
+    key = torch.where(table.valid, table.track_cnt, torch.full_like(table.track_cnt, -1))
+    return torch.sort(-key, dim=1, stable=True).indices
+
+
+def _set_mask_static(table: FeatureTable, detect: Tensor, params: TrackerParams, base_mask: Optional[Tensor],
+                     height: int, width: int, stage) -> Tuple[FeatureTable, Detection, Tensor]:
+    """:func:`set_mask` for every stream with no host sync; streams outside ``detect`` come out
+    unchanged (identity order, keep = valid: the table is already packed)."""
+    B, K = table.valid.shape
+    dev = table.valid.device
+    order = _setmask_order(table)
+    pts_s, cnt_s, valid_s = (gather_slots(x, order) for x in (table.pts, table.track_cnt, table.valid))
+    if base_mask is None:
+        mask = torch.full((B, height, width), 255, dtype=torch.uint8, device=dev)
+    else:
+        mask = base_mask.expand(B, height, width).clone()
+    with stage("mask"):
+        kept, mask, overflow = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask,
+                                                   capturable=True)
+    order = where_streams(detect, order, _slot_rows(B, K, dev))
+    keep = where_streams(detect, valid_s & kept, table.valid)
+    return table.permute(order).compact(keep), Detection(_stream_rows(B, dev), mask, detect), overflow & detect
+
+
+@functools.lru_cache(maxsize=32)
+def _slot_rows(batch: int, capacity: int, device) -> Tensor:
+    """``(B, K)`` identity slot order, built once."""
+    return torch.arange(capacity, device=device).expand(batch, capacity)
 
 
 def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: TrackerParams, *,
-               stage=no_stage) -> FeatureTable:
+               stage=no_stage) -> Tuple[FeatureTable, Optional[Tensor]]:
     """``goodFeaturesToTrack`` into the free slots (spec §3.6 step 7c-d, §5.2): ``max_cnt - n``
     corners (quality 0.01, ``min_dist``, setMask's mask) per detecting stream, appended in
-    response order with ``ids = -1``, ``track_cnt = 1`` (``is_new``)."""
+    response order with ``ids = -1``, ``track_cnt = 1`` (``is_new``). Returns ``(table, overflow)``
+    (the fixed candidate block / rounds too small; None on the default path)."""
     rows = detection.rows
     B = table.batch
+    if detection.detect is not None:  # capturable: every stream, K = max_cnt outputs, masked
+        n_max = table.capacity - table.valid.sum(1)
+        with stage("detection"):
+            pts, valid, overflow = _good_features_impl(
+                img, n_max, params.gftt_quality_level, float(params.min_dist), detection.mask != 0, False,
+                params.gftt_block_size, params.gftt_harris_k, table.capacity, capturable=True)
+        detect = detection.detect
+        return table.append(pts, valid & detect.unsqueeze(-1)), overflow & detect
     if rows.numel() == 0:
-        return table.append(table.pts[:, :0], table.valid[:, :0])
+        return table.append(table.pts[:, :0], table.valid[:, :0]), None
     n_max = table.capacity - _rows_of(table, rows, table.valid).sum(1)
     with stage("detection"):
         pts, valid = _good_features_impl(_rows_of(table, rows, img), n_max, params.gftt_quality_level,
@@ -256,7 +359,7 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
         full_valid = valid.new_zeros(B, valid.shape[1])
         full_pts[rows], full_valid[rows] = pts, valid
         pts, valid = full_pts, full_valid
-    return table.append(pts, valid)
+    return table.append(pts, valid), None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,18 +406,21 @@ class RightView(NamedTuple):
 
 
 def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tensor, camera1, dt: Tensor,
-                params: TrackerParams, *, stage=no_stage) -> Tuple[FeatureTable, RightView]:
+                params: TrackerParams, *, stage=no_stage) -> Tuple[FeatureTable, RightView, Optional[Tensor]]:
     """VINS-Fusion's stereo step (spec §6.2 step 6): LK from the left image to ``right`` (3 levels,
     no guess), with FLOW_BACK the backward check (3 levels, from the right result) and the right
     ``inBorder``; camera-1 undistortion and a right velocity where the slot also had a right
-    observation in the previous frame. The left features are not reduced."""
+    observation in the previous frame. The left features are not reduced. The third value is the
+    LK budgets' overflow flag (None on the default path)."""
     valid = table.valid & tracked.unsqueeze(-1)
     with stage("pyramid"):
         rpyr = image_pyramid(right, params)
     with stage("lk"):
-        ruv, rst = _lk(pyr, rpyr, table.pts, valid, params)
+        ruv, rst, of = _lk(pyr, rpyr, table.pts, valid, params)
         if params.flow_back:
-            rst = _flow_back(pyr, rpyr, table.pts, ruv, rst, params, levels=params.lk_max_level, from_start=False)
+            rst, of_b = _flow_back(pyr, rpyr, table.pts, ruv, rst, params, levels=params.lk_max_level,
+                                   from_start=False)
+            of = merge_overflow(of, of_b)
     if params.flow_back:
         rst = rst & in_border(ruv, right.shape[-1], right.shape[-2], params.border_size)
     rvalid = valid & rst
@@ -322,7 +428,8 @@ def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tenso
     with stage("undistort"):
         xy = lift_normalised(camera1, uv, rvalid)
     vel = _velocity(xy, table.right_un, rvalid & table.right_valid, dt)
-    return table.replace(right_un=xy, right_valid=rvalid), RightView(uv, xy, vel, rvalid)
+    of = None if of is None else of & tracked
+    return table.replace(right_un=xy, right_valid=rvalid), RightView(uv, xy, vel, rvalid), of
 
 
 
@@ -350,7 +457,7 @@ def set_prediction(table: FeatureTable, ids: Tensor, uv: Tensor, valid: Tensor) 
 
 
 __all__ = [
-    "equalize", "image_pyramid", "select_pyramid", "track_features", "in_border", "lift_normalised",
+    "merge_overflow", "equalize", "image_pyramid", "select_pyramid", "track_features", "in_border", "lift_normalised",
     "virtual_pinhole", "reject_with_f", "set_mask", "add_points", "update_id", "undistorted_points",
     "track_right", "remove_features", "set_prediction", "Detection", "RightView", "no_stage", "where_streams",
 ]

@@ -33,6 +33,7 @@ from .stages import (
     add_points,
     equalize,
     image_pyramid,
+    merge_overflow,
     no_stage,
     reject_with_f,
     select_pyramid,
@@ -198,80 +199,91 @@ def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams
 
 def _track(state: TrackerState, img: Tensor, tracked: Tensor, params: TrackerParams, stage):
     """CLAHE, pyramid and LK (``readImage`` up to ``track_cnt += 1``) for the ``tracked`` streams.
-    Returns ``(table, pyramid, equalised image, has_prediction after this step)``."""
+    Returns ``(table, pyramid, equalised image, has_prediction after this step, overflow)``."""
     with stage("clahe"):
         img_eq = equalize(img, params)
     with stage("pyramid"):
         pyr = image_pyramid(img_eq, params)
     prev_pyr = state.prev_pyramid if state.prev_pyramid is not None else pyr
     run = tracked & state.has_image  # streams with a previous image to track from
-    table = track_features(state.features, prev_pyr, pyr, run, tracked, state.has_prediction, params, stage=stage)
-    return table, pyr, img_eq, state.has_prediction & ~run  # a prediction is consumed by its step
+    table, overflow = track_features(state.features, prev_pyr, pyr, run, tracked, state.has_prediction, params,
+                                     stage=stage)
+    return table, pyr, img_eq, state.has_prediction & ~run, overflow  # a prediction is consumed by its step
 
 
 def _detect(table, img_eq, detect: Tensor, params: TrackerParams, stage):
     """setMask and addPoints for the ``detect`` streams (on the image's own size, as VINS-Fusion;
     mono checked at the door that it is the config's)."""
     base = params.fisheye_mask if params.uses_fisheye_mask else None
-    table, detection = set_mask(table, detect, params, base, img_eq.shape[-2], img_eq.shape[-1], stage=stage)
-    return add_points(table, img_eq, detection, params, stage=stage)
+    table, detection, of_mask = set_mask(table, detect, params, base, img_eq.shape[-2], img_eq.shape[-1], stage=stage)
+    table, of_gftt = add_points(table, img_eq, detection, params, stage=stage)
+    return table, merge_overflow(of_mask, of_gftt)
 
 
-def _commit(state: TrackerState, table, next_id: Tensor, t: Tensor, pyr, tracked: Tensor, **changes) -> TrackerState:
+def _commit(state: TrackerState, table, next_id: Tensor, t: Tensor, pyr, tracked: Tensor, capturable: bool,
+            **changes) -> TrackerState:
     """The new state: streams in ``tracked`` take this step's table, id counter, time and pyramid;
     the others keep theirs exactly."""
     return dataclasses.replace(
         state, features=table.committed().where_streams(tracked, state.features),
         next_id=torch.where(tracked, next_id, state.next_id), prev_time=torch.where(tracked, t, state.prev_time),
-        prev_pyramid=select_pyramid(tracked, pyr, state.prev_pyramid), has_image=state.has_image | tracked,
+        prev_pyramid=select_pyramid(tracked, pyr, state.prev_pyramid, capturable),
+        has_image=state.has_image | tracked,
         **changes)
 
 
 def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, present: Tensor,
-           decision: ClockDecision, sent: Tensor, t: Tensor, **extra) -> FeatureFrame:
-    """The published frame, from the committed table (copies: the frame never aliases the state)."""
+           decision: ClockDecision, sent: Tensor, t: Tensor, overflow: Optional[Tensor], **extra) -> FeatureFrame:
+    """The published frame, from the committed table (copies: the frame never aliases the state).
+    ``overflow`` None (the default path, exact) becomes all False."""
     f = new.features
+    if overflow is None:
+        overflow = torch.zeros_like(tracked)
     return FeatureFrame(
         ids=f.ids.clone(), uv=f.pts.clone(), xy=f.un_pts.clone(),
         velocity=torch.where((tracked.unsqueeze(-1) & f.valid).unsqueeze(-1), velocity, torch.zeros_like(velocity)),
         track_count=f.track_cnt.clone(), valid=valid, present=present, published=decision.publish, sent=sent,
-        restarted=decision.restarted, tracked=decision.tracked, timestamps=t, **extra)
+        restarted=decision.restarted, tracked=decision.tracked, timestamps=t, overflow=overflow, **extra)
 
 
 def _mono(state, img, t, params, arrived, stage):
     clock, decision = mono_clock(state.clock, t, arrived, params)
     tracked, publish = decision.tracked, decision.publish
-    table, pyr, img_eq, has_prediction = _track(state, img, tracked, params, stage)
-    table = reject_with_f(table, publish, params.camera, params, stage=stage).replace(prev_pts=None)
-    table = _detect(table, img_eq, publish, params, stage)
+    table, pyr, img_eq, has_prediction, of_lk = _track(state, img, tracked, params, stage)
+    table, of_f = reject_with_f(table, publish, params.camera, params, stage=stage)
+    table, of_det = _detect(table.replace(prev_pts=None), img_eq, publish, params, stage)
     table, velocity = undistorted_points(table, params.camera, t - state.prev_time, params, stage=stage)
     table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
     clock, sent = count_published(clock, publish)
-    new = _commit(state, table, next_id, t, pyr, tracked, clock=clock, has_prediction=has_prediction)
+    new = _commit(state, table, next_id, t, pyr, tracked, params.capturable, clock=clock,
+                  has_prediction=has_prediction)
     f = new.features
     # VINS-Mono publishes features tracked at least once after detection (spec §3.11)
     valid = f.valid & (f.track_cnt > 1) & publish.unsqueeze(-1)
-    return new, _frame(new, velocity, tracked, valid, f.valid.clone(), decision, sent, t)
+    return new, _frame(new, velocity, tracked, valid, f.valid.clone(), decision, sent, t,
+                       merge_overflow(of_lk, of_f, of_det))
 
 
 def _fusion(state, img, t, right, params, arrived, stage):
     # VINS-Fusion: no clock rules, every image is tracked, published and detects (spec §6.2, §6.7)
     decision = ClockDecision(tracked=arrived, publish=arrived, restarted=torch.zeros_like(arrived))
-    table, pyr, img_eq, has_prediction = _track(state, img, arrived, params, stage)
-    table = _detect(table, img_eq, arrived, params, stage)
+    table, pyr, img_eq, has_prediction, of_lk = _track(state, img, arrived, params, stage)
+    table, of_det = _detect(table, img_eq, arrived, params, stage)
+    of_right = None
     table, next_id = update_id(table, state.next_id)  # ids at detection (spec §6.2 step 4)
     dt = t - state.prev_time
     table, velocity = undistorted_points(table, params.camera, dt, params, stage=stage)
     extra = dict(prev_uv=table.prev_pts, prev_valid=table.valid & (table.track_cnt >= 2) & arrived.unsqueeze(-1))
     if right is not None:
-        table, view = track_right(table, pyr, right, arrived, params.camera1, dt, params, stage=stage)
+        table, view, of_right = track_right(table, pyr, right, arrived, params.camera1, dt, params, stage=stage)
         extra.update(right_uv=view.uv, right_xy=view.xy, right_velocity=view.velocity,
                      right_valid=view.valid & arrived.unsqueeze(-1))
     else:
         table = table.replace(right_un=torch.zeros_like(table.right_un), right_valid=torch.zeros_like(table.right_valid))
-    new = _commit(state, table, next_id, t, pyr, arrived, has_prediction=has_prediction)
+    new = _commit(state, table, next_id, t, pyr, arrived, params.capturable, has_prediction=has_prediction)
     valid = new.features.valid & arrived.unsqueeze(-1)
-    return new, _frame(new, velocity, arrived, valid, valid.clone(), decision, arrived.clone(), t, **extra)
+    return new, _frame(new, velocity, arrived, valid, valid.clone(), decision, arrived.clone(), t,
+                       merge_overflow(of_lk, of_det, of_right), **extra)
 
 
 __all__ = ["step", "step_impl", "check_inputs", "check_images", "check_timestamps", "check_active"]

@@ -1,0 +1,226 @@
+"""The static LK path (``LKOptions(early_exit=False)``, the capturable tracker's): the same results as
+the tuned early-exit path bit for bit, no host sync, a launch count independent of the batch, the
+iteration budget and its overflow flag, gradients."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import DTYPES, load_gray, sample_frames
+from torch_frontend import lk
+from torch_frontend.errors import ConfigError
+from torch_frontend.pyramid import build_pyramid
+from torch_frontend.testing.dispatch_count import OpCounter
+
+#: aten ops (kernels) per iteration of the static path (fixed point, float32 points, no gradient):
+#: searchsorted, gather, 4 for the weights, baddbmm + floor, 2 for b, 4 for the step, 3 for the
+#: step test, 2 for the oscillation test, 1 ``all``, 1 update (see the lk module notes)
+OPS_PER_ITERATION = 21
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return [load_gray(p) for p in sample_frames("cam0")]
+
+
+def _crop(img):
+    return np.ascontiguousarray(img[120:300, 250:520])
+
+
+def _warp(img, tx, ty, rot):
+    h, w = img.shape
+    M = cv2.getRotationMatrix2D((w / 2, h / 2), rot, 1.0)
+    M[:, 2] += (tx, ty)
+    return cv2.warpAffine(img, M, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+
+
+def _batch(frames, B=3, n=48):
+    """``B`` streams of 180x270 crops: consecutive frames, then warps with growing motion (shifts to
+    12 px, rotation): converged, oscillating and capped lanes; points at and beyond every border;
+    an eigenvalue failure (a flat patch)."""
+    prev, nxt, pts = [], [], []
+    for b in range(B):
+        a = _crop(frames[2 * b])
+        c = _crop(frames[2 * b + 1]) if b == 0 else _warp(_crop(frames[2 * b + 1]), 5.0 * b + 2, -3.5 * b, 2.0 * b)
+        if b == B - 1:
+            a = a.copy()
+            a[60:110, 100:150] = 128  # flat: fails the eigenvalue test
+        g = cv2.goodFeaturesToTrack(a, n - 12, 0.01, 6).reshape(-1, 2).astype(np.float32)
+        h, w = a.shape
+        edge = np.float32([[-25, 40], [-10.3, 90], [0.5, 3], [w - 1, 60.2], [w + 9.5, 100], [120, -10.5],
+                           [60, h - 0.5], [200, h + 10.5], [125, 85], [300, 20], [-21.0, 50], [w + 9.99, h + 9.99]])
+        p = np.concatenate([g, edge])[:n]
+        prev.append(a), nxt.append(c), pts.append(np.pad(p, ((0, n - len(p)), (0, 0)), constant_values=50.0))
+    return (torch.from_numpy(np.stack(prev))[:, None], torch.from_numpy(np.stack(nxt))[:, None],
+            torch.from_numpy(np.stack(pts)))
+
+
+def _both(P, Q, pts, valid, init, opts, **kw):
+    e = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, early_exit=True, **kw),
+                          return_overflow=True)
+    s = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, early_exit=False, **kw),
+                          return_overflow=True)
+    return e, s
+
+
+def _assert_same(e, s):
+    for name, a, b in zip(("next_pts", "status", "overflow"), e, s):
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert torch.equal(a.nan_to_num(7e7) if a.is_floating_point() else a,
+                           b.nan_to_num(7e7) if b.is_floating_point() else b), \
+            (name, (a != b).sum().item() if a.shape == b.shape else None)
+
+
+@pytest.mark.parametrize("mode", ["uint8", "float", "fixed_on_float"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_static_equals_early_exit(frames, device, dtype, mode):
+    """Bit for bit, a mixed batch and one stream, without and with initial guesses (NaN and inf ones
+    too), padded lanes, points at and beyond the borders: fixed point (8-bit images), float
+    interpolation (float images) and fixed point on float images, float32 and float64 points."""
+    prev, nxt, pts = _batch(frames)
+    if mode != "uint8":
+        prev, nxt = prev.to(dtype), nxt.to(dtype)
+    prev, nxt, pts = prev.to(device), nxt.to(device), pts.to(device, dtype)
+    P, Q = build_pyramid(prev, 3, with_gradients=False), build_pyramid(nxt, 3, with_gradients=False)
+    valid = torch.ones(pts.shape[:2], dtype=torch.bool, device=device)
+    valid[:, 7::11] = False
+    init = pts + torch.tensor([3.0, -2.0], dtype=dtype, device=device)
+    init[:, ::9] = float("nan")
+    init[1, 4, 0] = float("inf")
+    opts = lk.LKOptions(fixed_point=mode != "float")
+    for i, (pp, qq, x, v, g) in enumerate([(P, Q, pts, valid, None), (P, Q, pts, valid, init),
+                                           (P.select(slice(2, 3)), Q.select(slice(2, 3)), pts[2:], valid[2:], None)]):
+        e, s = _both(pp, qq, x, v, g, opts)
+        _assert_same(e, s)
+        assert not e[2].any()  # full budget: exact
+        if i == 0:
+            assert e[1].sum() > 0.6 * e[1].numel() and not e[1].all()  # tracks, and lanes lost at the borders
+    # one level, a non-square window, eps 0 (steps to the cap), few iterations
+    for kw in (dict(max_level=0), dict(max_level=1, win_size=(15, 9)), dict(eps=0.0, max_iters=7)):
+        _assert_same(*_both(P, Q, pts, valid, init, dataclasses.replace(opts, **kw)))
+
+
+def test_static_in_reference_forms_and_forward_backward(frames):
+    """The reference (differentiable) forms and the backward check give the same results too."""
+    from torch_frontend import _tuning
+
+    prev, nxt, pts = _batch(frames)
+    P, Q = build_pyramid(prev, 3, with_gradients=False), build_pyramid(nxt, 3, with_gradients=False)
+    valid = torch.ones(pts.shape[:2], dtype=torch.bool)
+    opts = lk.LKOptions()
+    ref = _both(P, Q, pts, valid, None, opts)[0]
+    with _tuning.reference_forms():
+        _assert_same(ref, _both(P, Q, pts, valid, None, opts)[1])
+    out, st = ref[:2]
+    for lv, from_start in ((1, True), (3, False)):
+        fb = [lk._forward_backward_impl(P, Q, pts, out, st, dataclasses.replace(opts, early_exit=ee), lv, 0.5,
+                                        from_start, return_overflow=True) for ee in (True, False)]
+        assert torch.equal(fb[0][0], fb[1][0]) and not fb[1][1].any()
+        assert torch.equal(fb[0][0], lk._forward_backward_impl(P, Q, pts, out, st, opts, lv, 0.5, from_start))
+
+
+def test_budget_and_overflow(frames):
+    """``iter_budget`` below the iterations a lane needs sets the overflow flag of its stream (never
+    with the full budget); both paths agree bit for bit under any budget, and a stream whose flag
+    is False has OpenCV's (the full budget's) exact results."""
+    prev, nxt, pts = _batch(frames)
+    P, Q = build_pyramid(prev, 3, with_gradients=False), build_pyramid(nxt, 3, with_gradients=False)
+    valid = torch.ones(pts.shape[:2], dtype=torch.bool)
+    opts = lk.LKOptions()
+    full = _both(P, Q, pts, valid, None, opts)[1]
+    assert not full[2].any()
+    seen_mixed = False
+    for budget in (0, 1, 3, 6, 30, 60):
+        e, s = _both(P, Q, pts, valid, None, opts, iter_budget=budget)
+        _assert_same(e, s)
+        if budget >= 30:
+            assert not s[2].any()
+        elif budget <= 3:
+            assert s[2].all()  # every stream has moving points
+        exact = ~s[2]
+        assert torch.equal(s[0][exact], full[0][exact]) and torch.equal(s[1][exact], full[1][exact])
+        seen_mixed |= bool(s[2].any() and exact.any())
+        if s[2].any():
+            assert not torch.equal(s[0], full[0])  # the flag is not raised for nothing here
+    # per-level budgets (level 0 first, the last entry for the levels above)
+    for budget, inexact in (((2, 30), True), ((30, 2), True), ((30,), False), ([40, 35], False)):
+        e, s = _both(P, Q, pts, valid, None, opts, iter_budget=budget)
+        _assert_same(e, s)
+        assert bool(s[2].any()) == inexact
+        if not inexact:
+            assert torch.equal(s[0], full[0]) and torch.equal(s[1], full[1])
+    o = lk.LKOptions(iter_budget=[4, 9])
+    assert o.iter_budget == (4, 9) and [o.budget_at(lv) for lv in range(4)] == [4, 9, 9, 9] and o.inexact
+    assert lk.LKOptions(max_iters=20, iter_budget=50).budget == 20 and lk.LKOptions().budget == 30
+    for bad in (-1, 2.5, True, (), (3, -1)):
+        with pytest.raises(ConfigError, match="iter_budget"):
+            lk.LKOptions(iter_budget=bad)
+    # with a generous budget a single-stream subset can be exact while another overflows
+    e, s = _both(P.select(slice(0, 2)), Q.select(slice(0, 2)), pts[:2], valid[:2], None, opts, iter_budget=12)
+    _assert_same(e, s)
+    assert seen_mixed or not s[2].all()
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
+    """After a warm-up call (per-size constants cached): 0 host syncs for a whole forward and
+    backward LK, the same kernel count for B = 1 and B = 16, and the per-iteration op count."""
+    a, b = _crop(frames[0]), _crop(frames[1])
+    p = cv2.goodFeaturesToTrack(a, 40, 0.01, 6).reshape(-1, 2).astype(np.float32)[:32]
+    counts = {}
+    for B in (1, 16):
+        P = build_pyramid(torch.from_numpy(np.stack([a] * B))[:, None], 3, with_gradients=False)
+        Q = build_pyramid(torch.from_numpy(np.stack([b] * B))[:, None], 3, with_gradients=False)
+        pts = torch.from_numpy(np.stack([p] * B)).to(dtype)
+        valid = torch.ones(pts.shape[:2], dtype=torch.bool)
+        for budget in (2, 3) if B > 1 else (2, 3, None):
+            opts = lk.LKOptions(early_exit=False, iter_budget=budget)
+
+            def call(P, Q, pts, valid, opts):
+                out, st, ov = lk._track_lk_impl(P, Q, pts, valid, pts, opts, return_overflow=True)
+                return lk._forward_backward_impl(P, Q, pts, out, st, opts, 1, 0.5, True, return_overflow=True)
+
+            call(P, Q, pts, valid, opts)  # warm-up: caches
+            with OpCounter() as c:
+                call(P, Q, pts, valid, opts)
+            assert c.syncs == 0, c.summary()
+            counts[B, budget] = c.kernels
+    for budget in (2, 3):
+        assert counts[1, budget] == counts[16, budget]
+    per_iteration = (counts[1, 3] - counts[1, 2]) / (4 + 2)  # 4 forward levels + 2 backward levels
+    # float64 points: OpenCV's float32 weights cost two conversions, the step test none
+    bound = OPS_PER_ITERATION + (dtype == torch.float64)
+    assert per_iteration <= bound, per_iteration
+    # linear in the budget: 27 more iterations on 6 levels (less the overflow bookkeeping)
+    assert counts[1, 3] + 27 * 6 * per_iteration - 12 <= counts[1, None] <= counts[1, 3] + 27 * 6 * per_iteration
+
+
+@pytest.mark.parametrize("fixed", [False, True], ids=["float", "fixed_point"])
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_static_gradients(frames, device, dtype, fixed):
+    """Gradients of the static path w.r.t. the points are those of the early-exit path bit for bit;
+    w.r.t. float images they are equal to rounding (allclose, ~1e-7 relative in float32): the backward
+    adds the per-iteration window gradients into the images in another order (all lanes every
+    iteration vs the compacted lanes)."""
+    a = torch.from_numpy(_crop(frames[0])[20:140, 40:200]).to(device, dtype)[None, None]
+    b = torch.from_numpy(_crop(frames[1])[20:140, 40:200]).to(device, dtype)[None, None]
+    p = cv2.goodFeaturesToTrack(_crop(frames[0])[20:140, 40:200], 10, 0.01, 8).reshape(-1, 2)
+    p = torch.from_numpy(p + np.float32([0.37, 0.21])).to(device, dtype)[None]
+    c = torch.randn(p.shape, generator=torch.Generator().manual_seed(0), dtype=dtype).to(device)
+    res = []
+    for ee in (True, False):
+        A, B, X = a.clone().requires_grad_(), b.clone().requires_grad_(), p.clone().requires_grad_()
+        out, st = lk.track_lk(A, B, X, max_level=1, early_exit=ee, fixed_point=fixed)
+        res.append((out.detach(), st) + torch.autograd.grad((out * c).sum(), (A, B, X)))
+    (o1, s1, ga1, gb1, gp1), (o2, s2, ga2, gb2, gp2) = res
+    assert torch.equal(o1, o2) and torch.equal(s1, s2) and s1.sum() >= 8
+    assert torch.equal(gp1, gp2)
+    tol = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-12, atol=1e-13)
+    for g1, g2 in ((ga1, ga2), (gb1, gb2)):
+        assert g1.abs().sum() > 0
+        torch.testing.assert_close(g2, g1, **tol)
