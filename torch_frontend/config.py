@@ -52,6 +52,8 @@ _REQUIRED = {
 }
 # VINS-Mono's euroc_config.yaml front-end values, used when only a sensor.yaml is given.
 EUROC_FRONTEND = dict(max_cnt=150, min_dist=30, freq=10, F_threshold=1.0, equalize=True, fisheye=False)
+# ``F_method`` (not a VINS key): rejectWithF's estimator, ``torch_frontend.ransac``'s ``method``
+F_METHODS = ("opencv", "lo")
 
 
 @dataclasses.dataclass
@@ -68,6 +70,9 @@ class TrackerConfig:
         min_dist: GFTT minimum distance and setMask disc radius (pixels).
         freq: publish rate in Hz (VINS-Mono rule: 0 in the file means 100).
         F_threshold: F-RANSAC threshold in virtual-pinhole pixels.
+        F_method: F-RANSAC estimator (not a VINS key; default ``"opencv"``): ``"opencv"`` is VINS's
+            (OpenCV's FM_RANSAC, exactly), ``"lo"`` LO-RANSAC (the same hypotheses and inlier
+            test, locally optimised; keeps more good tracks), see ``ransac.find_fundamental``.
         show_track, equalize, fisheye, flow_back: VINS flags as bools.
         num_of_cam: 1 or 2 (VINS-Fusion); 1 for VINS-Mono.
         cam0_calib, cam1_calib: the resolved camera files of a VINS-Fusion config, else None.
@@ -89,6 +94,7 @@ class TrackerConfig:
     min_dist: int = 30
     freq: int = 10
     F_threshold: float = 1.0
+    F_method: str = "opencv"
     show_track: bool = False
     equalize: bool = False
     fisheye: bool = False
@@ -102,13 +108,18 @@ class TrackerConfig:
     body_T_cam1: Optional[np.ndarray] = None
     raw: Dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
 
+    def __post_init__(self):
+        if self.F_method not in F_METHODS:  # a config built by hand (load_config checks the file itself)
+            raise ConfigError(f"expected one of {', '.join(map(repr, F_METHODS))}, got {self.F_method!r}",
+                              self.path, "F_method")
+
     def summary(self) -> str:
         """A few human-readable lines (what ``make demo`` prints)."""
         lines = [
             f"config        {self.path} ({self.flavour})",
             f"image         {self.image_width} x {self.image_height}",
             f"max_cnt       {self.max_cnt}   min_dist {self.min_dist}   freq {self.freq} Hz"
-            f"   F_threshold {self.F_threshold}",
+            f"   F_threshold {self.F_threshold}" + (f"   F_method {self.F_method}" if self.F_method != "opencv" else ""),
             f"equalize      {int(self.equalize)}   fisheye {int(self.fisheye)}   flow_back {int(self.flow_back)}"
             f"   num_of_cam {self.num_of_cam}",
             f"camera        {self.camera!r}",
@@ -237,6 +248,10 @@ def load_config(path: PathLike) -> TrackerConfig:
         raise ConfigError(f"must be a publish rate >= 0 in Hz (0 means 100, as in VINS-Mono), got {freq}", sp, "freq")
     cfg.freq = 100 if freq == 0 else freq  # VINS-Mono: FREQ 0 means 100 Hz
     cfg.F_threshold = _get_float(raw, "F_threshold", sp, 1.0)
+    cfg.F_method = _get_str(raw, "F_method", sp, "opencv")
+    if cfg.F_method not in F_METHODS:
+        raise ConfigError(f"expected one of {', '.join(map(repr, F_METHODS))} (rejectWithF's estimator), got "
+                          f"{cfg.F_method!r}", sp, "F_method")
     for flag in ("show_track", "equalize", "fisheye", "flow_back"):
         setattr(cfg, flag, bool(_get_int(raw, flag, sp, 0)))
     cfg.num_of_cam = _get_int(raw, "num_of_cam", sp, 1)
@@ -347,6 +362,7 @@ def config_from_sensor_yaml(path: PathLike, **overrides) -> TrackerConfig:
 
 __all__ = [
     "EUROC_FRONTEND",
+    "F_METHODS",
     "ConfigError",
     "TrackerConfig",
     "camera_from_sensor_yaml",
