@@ -176,18 +176,33 @@ class CameraModel(nn.Module):
         # integer pixel coordinates are legal input; compute in the camera's own dtype
         return x.to(getattr(self, self.param_names[0]).dtype)
 
-    def lift(self, uv: torch.Tensor) -> torch.Tensor:
+    #: models whose ``lift`` accepts ``jacobian="implicit"`` (a converged inverse)
+    implicit_lift: ClassVar[bool] = False
+
+    def lift(self, uv: torch.Tensor, *, jacobian: str = "unrolled") -> torch.Tensor:
         """camodocal ``liftProjective``: pixels to the model's (unnormalised) ray.
 
         Args:
             uv: ``(..., 2)`` float, pixels ``(u, v)``.
+            jacobian: ``"unrolled"`` (default): camodocal's values, differentiated as computed
+                (for Pinhole / MEI the fixed count of fixed-point evaluations). ``"implicit"``
+                (Pinhole, MEI, Kannala-Brandt): the *converged* inverse (damped Newton, finite for
+                any finite input) with the implicit-function Jacobian of the converged inverse,
+                exact to second order (:func:`radtan_undistort_converged`); Kannala-Brandt's
+                ``lift`` is converged already, both values are the same.
 
         Returns:
             ``(..., 3)`` in uv's dtype/device; see each model for normalisation and invalid lanes.
         """
         check_shape(uv, ("*", 2), "uv")
         uv = self._as_float(uv)
-        return self._lift_impl(uv, **self._params_like(uv))
+        if jacobian == "unrolled":
+            return self._lift_impl(uv, **self._params_like(uv))
+        if jacobian != "implicit":
+            raise ValueError(f"jacobian must be 'unrolled' or 'implicit', got {jacobian!r}")
+        if not self.implicit_lift:
+            raise ValueError(f"{type(self).__name__}.lift has no jacobian='implicit' option")
+        return self._lift_impl(uv, **self._params_like(uv), converged=True)
 
     def project(self, P: torch.Tensor) -> torch.Tensor:
         """camodocal ``spaceToPlane``: camera-frame points to pixels.
@@ -202,13 +217,13 @@ class CameraModel(nn.Module):
         P = self._as_float(P)
         return self._project_impl(P, **self._params_like(P))
 
-    def undistort(self, uv: torch.Tensor) -> torch.Tensor:
-        """Normalised undistorted image coordinates ``(x/z, y/z)`` of ``lift(uv)``: ``(..., 2)``.
+    def undistort(self, uv: torch.Tensor, *, jacobian: str = "unrolled") -> torch.Tensor:
+        """Normalised undistorted image coordinates ``(x/z, y/z)`` of ``lift(uv, jacobian=...)``: ``(..., 2)``.
 
         This is what VINS' ``undistortedPoints`` computes (it divides by z without a check, so rays
         with ``z <= 0`` give inf/negative values exactly as upstream).
         """
-        P = self.lift(uv)
+        P = self.lift(uv, jacobian=jacobian)
         return P[..., :2] / P[..., 2:3]
 
     def forward(self, P: torch.Tensor) -> torch.Tensor:
@@ -273,6 +288,93 @@ def radtan_undistort(
     mxu = torch.where(no_dist & ~torch.isfinite(mxu), mxd, mxu)
     myu = torch.where(no_dist & ~torch.isfinite(myu), myd, myu)
     return mxu, myu
+
+
+def _radtan_residual(x, y, mxd, myd, k1, k2, p1, p2):
+    """``r = m + d(m) - m_d`` ``(2, ...)`` and its Jacobian ``dr/dm`` ``(2, 2, ...)`` (analytic)."""
+    dx, dy = radtan_distortion(x, y, k1, k2, p1, p2)
+    r2 = x * x + y * y
+    rad = k1 * r2 + k2 * r2 * r2
+    drad = 2.0 * (k1 + 2.0 * k2 * r2)  # d rad / d(x, y) = drad * (x, y)
+    jxx = 1 + rad + x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    jxy = x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    jyx = x * y * drad + 2.0 * p2 * y + 2.0 * p1 * x
+    jyy = 1 + rad + y * y * drad + 2.0 * p2 * x + 6.0 * p1 * y
+    return torch.stack((x + dx - mxd, y + dy - myd)), torch.stack((torch.stack((jxx, jxy)), torch.stack((jyx, jyy))))
+
+
+def _solve22(A, r, ok):
+    """``A^-1 r`` for ``(2, 2, ...)`` / ``(2, ...)``, 0 where not ``ok`` (inputs replaced first: no NaN)."""
+    one, zero = torch.ones_like(A[0, 0]), torch.zeros_like(A[0, 0])
+    a, b = torch.where(ok, A[0, 0], one), torch.where(ok, A[0, 1], zero)
+    c, d = torch.where(ok, A[1, 0], zero), torch.where(ok, A[1, 1], one)
+    r0, r1 = torch.where(ok, r[0], zero), torch.where(ok, r[1], zero)
+    det = a * d - b * c
+    det = torch.where(ok & (det != 0), det, one)
+    return torch.stack(((d * r0 - b * r1) / det, (a * r1 - c * r0) / det))
+
+
+#: damped Newton for the radial-tangential inverse: iterations, step fractions tried per iteration
+#: (the one with the smallest residual wins, 0 = stay: the residual never grows), tolerance
+RADTAN_NEWTON_ITERS = 40
+RADTAN_STEP_FRACTIONS = (1.0, 0.5, 0.25, 0.125, 2.0**-5, 2.0**-8, 0.0)
+RADTAN_CONVERGED_TOL = 1e-9
+
+
+def radtan_undistort_converged(mxd, myd, k1, k2, p1, p2):
+    """The converged inverse of camodocal's distortion, ``m + d(m) = m_d``, by damped Newton.
+
+    A fixed count (``RADTAN_NEWTON_ITERS``, no host sync) of Newton steps with the true Jacobian,
+    each scaled by the fraction of ``RADTAN_STEP_FRACTIONS`` with the smallest residual (including
+    0), so the residual never grows and every value stays finite — camodocal's plain fixed point
+    ``m <- m_d - d(m)`` diverges (inf/NaN) where ``|d'| > 1``, e.g. the EuRoC calibration with
+    ``k2 = 0`` at 22 % of the pixels with 64 evaluations. Starts at ``m_d``.
+
+    Derivatives: implicit, exact to second order — two differentiable Newton steps from the
+    detached solution (``N(m) = m - J^-1 r``; the first gives ``dm = -J^-1 dr``, the second the
+    second derivatives), the value unchanged. Where no inverse exists (a strongly non-monotone
+    polynomial: the residual stays above ``RADTAN_CONVERGED_TOL (1 + |m_d|)``) or ``J`` is singular,
+    the value is the damped iteration's last point (finite) and its gradient is 0.
+
+    Returns:
+        ``(m_u.x, m_u.y)`` and the ``converged`` mask.
+    """
+    with torch.no_grad():
+        xd, yd = mxd.detach(), myd.detach()
+        kd = [t.detach() for t in (k1, k2, p1, p2)]
+        finite = torch.isfinite(xd) & torch.isfinite(yd)
+        x, y = torch.where(finite, xd, 0.0), torch.where(finite, yd, 0.0)
+        xs, ys = x, y
+        tru = torch.ones_like(x, dtype=torch.bool)
+        for _ in range(RADTAN_NEWTON_ITERS):
+            r, J = _radtan_residual(x, y, xs, ys, *kd)
+            s = _solve22(J, r, tru)
+            best = (r * r).sum(0)
+            bx, by = x, y
+            for t in RADTAN_STEP_FRACTIONS[:-1]:
+                cx, cy = x - t * s[0], y - t * s[1]
+                rc, _ = _radtan_residual(cx, cy, xs, ys, *kd)
+                e = (rc * rc).sum(0)
+                better = e < best  # NaN (overflow) is never better
+                best = torch.where(better, e, best)
+                bx, by = torch.where(better, cx, bx), torch.where(better, cy, by)
+            x, y = bx, by
+        r, J = _radtan_residual(x, y, xs, ys, *kd)
+        det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+        conv = finite & (r.abs().amax(0) <= RADTAN_CONVERGED_TOL * (1 + xs.abs() + ys.abs())) & (det.abs() > 1e-12)
+    m = torch.stack((x, y))
+
+    def step(mm):
+        r, J = _radtan_residual(mm[0], mm[1], torch.where(conv, mxd, 0.0), torch.where(conv, myd, 0.0), k1, k2, p1, p2)
+        return -_solve22(J, r, conv)
+
+    c1 = step(m)
+    m1 = m + (c1 - c1.detach())
+    c2 = m1 + step(m1)
+    out = m + torch.where(conv, c2 - c2.detach(), 0.0)
+    # non-finite input stays as the unrolled path gives it (NaN in, NaN out)
+    out = torch.where(finite, out, torch.full_like(out, math.nan))  # a constant: no NaN gradient
+    return out[0], out[1], conv
 
 
 def safe_norm2(a: torch.Tensor, b: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:

@@ -105,8 +105,8 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50) -> torch.Ten
     ``f(0) = -ρ < 0``, so the first endpoint with ``f >= 0`` closes the interval holding the smallest
     root, which is unique there. Newton from ``θ₀ = ρ`` clamped into that bracket, falling back to
     bisection whenever a step leaves the bracket, shrinks it. The loop runs on detached tensors; one
-    final Newton step on the graph gives the exact implicit derivatives ``dθ/dρ = 1/r'(θ)``,
-    ``dθ/dk_i = -θ^(2i-1)/r'(θ)``.
+    final pair of Newton steps on the graph (:func:`newton_attach`) gives the exact implicit
+    derivatives ``dθ/dρ = 1/r'(θ)``, ``dθ/dk_i = -θ^(2i-1)/r'(θ)`` and their exact second derivatives.
     """
     dt = rho.dtype
     kd = [k.detach() for k in (k2, k3, k4, k5)]
@@ -148,14 +148,31 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50) -> torch.Ten
     theta = torch.where(has, theta, r)
     # ρ == 0: j == 0 and the root is θ = 0 (theta already 0 from the clamp; keep it exact).
     theta = torch.where(has & (j == 0), torch.zeros_like(theta), theta)
-    # Implicit-function gradient: one Newton step on the graph from the detached root. Where there is
-    # no root upstream returns ρ itself, whose derivative is 1 w.r.t. ρ.
-    f = _poly_r(theta, k2, k3, k4, k5) - rho
-    df = _poly_dr(theta, k2, k3, k4, k5)
-    df_safe = torch.where(df != 0, df, torch.ones_like(df))
-    corr = -f / df_safe
-    theta_g = theta + (corr - corr.detach())  # value: the converged root, bit for bit
-    return torch.where(has, theta_g, rho)
+    # Implicit-function gradient: two Newton steps on the graph from the detached root. Where there
+    # is no root upstream returns ρ itself, whose derivative is 1 w.r.t. ρ.
+    return torch.where(has, newton_attach(theta, lambda t: _poly_r(t, k2, k3, k4, k5) - rho,
+                                          lambda t: _poly_dr(t, k2, k3, k4, k5)), rho)
+
+
+def newton_attach(root: torch.Tensor, f, df) -> torch.Tensor:
+    """The detached scalar root ``root`` of ``f(θ) = 0`` with its exact first *and* second
+    derivatives w.r.t. whatever ``f``/``df`` (``df = ∂f/∂θ``) depend on; the value is ``root`` bit for
+    bit.
+
+    ``N(θ) = θ - f(θ)/f'(θ)`` (Newton's map) has ``∂N/∂θ = 0`` at a root, so ``θ1 = N(root)`` with
+    ``root`` detached carries the exact first derivative ``-f_x / f'`` (what one step gave before:
+    exact to first order only, its second derivative missed the terms through ``θ(x)`` — 4.4 % to
+    ~40 % off on Kannala-Brandt ``lift``); ``θ2 = N(θ1)`` with ``θ1`` on the graph carries the exact
+    second derivative as well. The corrections are applied as ``c - c.detach()`` (exactly 0), so
+    the forward value is untouched; ``f' = 0`` lanes get a zero correction (no NaN)."""
+    def step(t):
+        d = df(t)
+        return -f(t) / torch.where(d != 0, d, torch.ones_like(d))
+
+    c1 = step(root)
+    t1 = root + (c1 - c1.detach())
+    c2 = t1 + step(t1)
+    return root + (c2 - c2.detach())
 
 
 class KannalaBrandtCamera(CameraModel):
@@ -178,6 +195,7 @@ class KannalaBrandtCamera(CameraModel):
     """
 
     model_type = "KANNALA_BRANDT"
+    implicit_lift = True
     param_names = ("k2", "k3", "k4", "k5", "mu", "mv", "u0", "v0")
     positive_params = ("mu", "mv")
 
@@ -222,7 +240,7 @@ class KannalaBrandtCamera(CameraModel):
         sphi = torch.where(nz, Y / n_safe, torch.zeros_like(n))
         return torch.stack((mu * rt * cphi + u0, mv * rt * sphi + v0), dim=-1)
 
-    def _lift_impl(self, uv, k2, k3, k4, k5, mu, mv, u0, v0):
+    def _lift_impl(self, uv, k2, k3, k4, k5, mu, mv, u0, v0, converged=False):  # converged already
         px = (uv[..., 0] - u0) / mu
         py = (uv[..., 1] - v0) / mv
         rho, _ = safe_norm2(px, py)

@@ -6,7 +6,14 @@ from typing import Any, Dict
 
 import torch
 
-from .base import NAN, CameraModel, check_iters, radtan_distortion, radtan_undistort
+from .base import (
+    NAN,
+    CameraModel,
+    check_iters,
+    radtan_distortion,
+    radtan_undistort,
+    radtan_undistort_converged,
+)
 
 
 class MeiCamera(CameraModel):
@@ -26,6 +33,7 @@ class MeiCamera(CameraModel):
     """
 
     model_type = "MEI"
+    implicit_lift = True
     param_names = ("xi", "k1", "k2", "p1", "p2", "gamma1", "gamma2", "u0", "v0")
     positive_params = ("gamma1", "gamma2")
     # the unified model projects from a point xi behind the sphere's centre (xi = 0: a pinhole);
@@ -72,10 +80,13 @@ class MeiCamera(CameraModel):
         dx, dy = radtan_distortion(x, y, k1, k2, p1, p2)
         return torch.stack((gamma1 * (x + dx) + u0, gamma2 * (y + dy) + v0), dim=-1)
 
-    def _lift_impl(self, uv, xi, k1, k2, p1, p2, gamma1, gamma2, u0, v0):
+    def _lift_impl(self, uv, xi, k1, k2, p1, p2, gamma1, gamma2, u0, v0, converged=False):
         mxd = (uv[..., 0] - u0) / gamma1
         myd = (uv[..., 1] - v0) / gamma2
-        mxu, myu = radtan_undistort(mxd, myd, k1, k2, p1, p2, self.undistort_iters)
+        if converged:  # lift(..., jacobian="implicit")
+            mxu, myu, _ = radtan_undistort_converged(mxd, myd, k1, k2, p1, p2)
+        else:
+            mxu, myu = radtan_undistort(mxd, myd, k1, k2, p1, p2, self.undistort_iters)
         rho2 = mxu * mxu + myu * myu
         arg = 1.0 + (1.0 - xi * xi) * rho2
         ok = arg >= 0

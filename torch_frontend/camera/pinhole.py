@@ -7,7 +7,7 @@ from typing import Any, Dict
 
 import torch
 
-from .base import CameraModel, check_iters, radtan_distortion, radtan_undistort
+from .base import CameraModel, check_iters, radtan_distortion, radtan_undistort, radtan_undistort_converged
 
 
 class PinholeCamera(CameraModel):
@@ -24,6 +24,7 @@ class PinholeCamera(CameraModel):
     """
 
     model_type = "PINHOLE"
+    implicit_lift = True
     param_names = ("k1", "k2", "p1", "p2", "fx", "fy", "cx", "cy")
     positive_params = ("fx", "fy")
 
@@ -64,10 +65,13 @@ class PinholeCamera(CameraModel):
         dx, dy = radtan_distortion(x, y, k1, k2, p1, p2)
         return torch.stack((fx * (x + dx) + cx, fy * (y + dy) + cy), dim=-1)
 
-    def _lift_impl(self, uv, k1, k2, p1, p2, fx, fy, cx, cy):
+    def _lift_impl(self, uv, k1, k2, p1, p2, fx, fy, cx, cy, converged=False):
         mxd = (uv[..., 0] - cx) / fx
         myd = (uv[..., 1] - cy) / fy
-        mxu, myu = radtan_undistort(mxd, myd, k1, k2, p1, p2, self.undistort_iters)
+        if converged:  # lift(..., jacobian="implicit")
+            mxu, myu, _ = radtan_undistort_converged(mxd, myd, k1, k2, p1, p2)
+        else:
+            mxu, myu = radtan_undistort(mxd, myd, k1, k2, p1, p2, self.undistort_iters)
         return torch.stack((mxu, myu, torch.ones_like(mxu)), dim=-1)
 
 
