@@ -16,45 +16,35 @@ Convention:
     * "first maximum per group" (k-means++ seeding): an all-reduce MAX of the per-group maxima
       (exact), then an all-reduce MIN of the global indices that reach it (first wins, as in one
       process); the chosen descriptor comes from its rank by an int64 SUM with zeros elsewhere;
-    * centres (bitwise majority): the per-(centre, bit) counts and the group sizes are integers,
-      all-reduced as int32/int64 (exact in any order), and a bit is set iff ``2 count > size``
-      (one process compares float32 counts, the same numbers below 2^24 members per centre);
+    * centres (bitwise majority): the per-(centre, bit) counts are float32 integers, exact in any
+      order below 2^24 members per centre (as one process's counts), the group sizes int64; a bit
+      is set iff ``2 count > size``; the centres with members: an all-reduce MAX of a presence
+      mask (``_Comm.unique``);
     * group sizes, child numbering of groups of <= k descriptors (an exclusive prefix over ranks
       of each group's local count), convergence flags, IDF document counts: integer all-reduces;
     * assignments (nearest centre, first wins ties) are per descriptor, so local.
 
-    Every rank runs the same collectives in the same order: control flow depends on reduced values
-    only. ``group=None`` and no initialised process group: one process, ``Vocabulary.train``'s
-    result.
+    The algorithm is ``loop.vocabulary``'s, run with this module's communicator ``_Comm`` (the
+    one-process communicator there makes every reduction the identity). Every rank runs the same
+    collectives in the same order: control flow depends on reduced values only. ``group=None``
+    and no initialised process group: one process, ``Vocabulary.train``'s result.
 """
 
 from __future__ import annotations
 
-import math
-import time
 from typing import List, Optional
 
 import torch
 
 from ..errors import ConfigError
-from ..loop.features import _unpack_bits
-from ..loop.vocabulary import (
-    _CHUNK,
-    BINARY,
-    L1_NORM,
-    TF,
-    TF_IDF,
-    Vocabulary,
-    _assign,
-    _hamming_packed,
-    _pack_bits,
-)
+from ..loop.vocabulary import BINARY, L1_NORM, TF, TF_IDF, Vocabulary, _hkmeans
 
 __all__ = ["train_vocabulary"]
 
 
 class _Comm:
-    """All-reduces over ``group`` (identity for a single process)."""
+    """All-reduces over ``group`` (identity for a single process): the communicator that
+    ``loop.vocabulary._hkmeans`` takes (``loop.vocabulary._OneProcess`` is its one-process twin)."""
 
     def __init__(self, group=None):
         import torch.distributed as dist
@@ -92,163 +82,20 @@ class _Comm:
         counts = self.gather(torch.tensor([n], dtype=torch.int64, device=device))[:, 0].tolist()
         return int(sum(counts[: self.rank])), int(sum(counts))
 
+    def take(self, x: torch.Tensor, gidx: torch.Tensor, offset: int) -> torch.Tensor:
+        """Rows ``gidx`` (global indices) of the distributed ``x (n, 4) int64``, on every rank."""
+        loc = gidx - offset
+        mine = (loc >= 0) & (loc < x.shape[0])
+        out = torch.zeros(gidx.shape[0], 4, dtype=torch.int64, device=x.device)
+        out[mine] = x[loc[mine]]
+        return self.sum_(out)  # one rank holds each row, the others add zeros: exact
 
-def _first_max(comm: _Comm, key: torch.Tensor, seg: torch.Tensor, m: int, offset: int, total: int) -> torch.Tensor:
-    """Global index of the first maximum of ``key`` within each of ``m`` segments
-    (``loop.vocabulary._segment_argmax`` over ranks)."""
-    dev = key.device
-    mx = torch.full((m,), -math.inf, dtype=key.dtype, device=dev)
-    mx = comm.max_(mx.scatter_reduce(0, seg, key, "amax", include_self=True))
-    ar = torch.arange(key.numel(), device=dev) + offset
-    cand = torch.where(key == mx[seg], ar, torch.full_like(ar, total))
-    first = torch.full((m,), total, dtype=torch.int64, device=dev)
-    first = comm.min_(first.scatter_reduce(0, seg, cand, "amin", include_self=True))
-    return first.clamp(max=max(total - 1, 0))
-
-
-def _take(comm: _Comm, x: torch.Tensor, gidx: torch.Tensor, offset: int) -> torch.Tensor:
-    """Rows ``gidx`` (global indices) of the distributed ``x (n, 4) int64``, on every rank."""
-    loc = gidx - offset
-    mine = (loc >= 0) & (loc < x.shape[0])
-    out = torch.zeros(gidx.shape[0], 4, dtype=torch.int64, device=x.device)
-    out[mine] = x[loc[mine]]
-    return comm.sum_(out)  # one rank holds each row, the others add zeros: exact
-
-
-def _rand(n: int, generator, device) -> torch.Tensor:
-    """``(n,)`` float64 uniforms drawn on the generator's device, then moved to ``device`` (as
-    ``loop.vocabulary`` draws them: a CPU generator with CUDA descriptors draws on the host)."""
-    gdev = device if generator is None else generator.device
-    return torch.rand(n, generator=generator, device=gdev, dtype=torch.float64).to(device)
-
-
-def _kmedians_level(comm: _Comm, x, bits, g, m, k, generator, max_iter):
-    """``loop.vocabulary._kmedians_level`` over ranks (``x``, ``bits``, ``g``: this rank's rows)."""
-    dev = x.device
-    n = x.shape[0]
-    off, N = comm.offset(n, dev)
-    cent = torch.zeros(m, k, 4, dtype=torch.int64, device=dev)
-    ncent = torch.ones(m, dtype=torch.int64, device=dev)
-    u = _rand(N, generator, dev)[off:off + n]
-    cent[:, 0] = _take(comm, x, _first_max(comm, u, g, m, off, N), off)
-    mind = _hamming_packed(x, cent[g, 0]).to(torch.float64)
-    going = torch.ones(m, dtype=torch.bool, device=dev)
-    for c in range(1, k):
-        # sums of integer distances in float64: exact below 2^53, in any order
-        dsum = comm.sum_(torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, g, mind))
-        going = going & (dsum > 0)
-        if not bool(going.any()):
-            break
-        u = _rand(N, generator, dev).clamp_min(1e-300)
-        logu = torch.log(u)[off:off + n]  # log of the whole draw, as one process takes it
-        key = torch.where(mind > 0, logu / mind.clamp_min(1e-300), torch.full_like(mind, -math.inf))
-        rows = _take(comm, x, _first_max(comm, key, g, m, off, N), off)
-        cent[going, c] = rows[going]
-        ncent = torch.where(going, torch.full_like(ncent, c + 1), ncent)
-        d = _hamming_packed(x, cent[g, c]).to(torch.float64)
-        mind = torch.where(going[g], torch.minimum(mind, d), mind)
-    assign = _assign(x, cent, g, ncent)
-    live = torch.ones(m, dtype=torch.bool, device=dev)
-    it = 0
-    slots = torch.arange(k, device=dev)
-    while True:
-        sub = live[g].nonzero().squeeze(1)
-        gs = g[sub]
-        cid = gs * k + assign[sub]
-        present = torch.zeros(m * k, dtype=torch.uint8, device=dev)
-        present[cid] = 1
-        uniq = comm.max_(present).nonzero().squeeze(1)  # the centres with members, ascending
-        inv = torch.searchsorted(uniq, cid)
-        flat = cent.view(m * k, 4)
-        live_slots = (live[:, None] & (slots < ncent[:, None])).view(-1)
-        flat[live_slots] = 0
-        U = uniq.numel()
-        counts = torch.zeros(U, 256, dtype=torch.int32, device=dev)
-        bsub = bits[sub]
-        for s in range(0, bsub.shape[0], _CHUNK):
-            counts.index_add_(0, inv[s:s + _CHUNK], bsub[s:s + _CHUNK].to(torch.int32))
-        comm.sum_(counts)
-        sizes = comm.sum_(torch.bincount(inv, minlength=U))
-        flat[uniq] = _pack_bits(2 * counts.to(torch.int64) > sizes[:, None])
-        new = _assign(x[sub], cent, gs, ncent)
-        changed = new != assign[sub]
-        assign[sub] = new
-        it += 1
-        flags = torch.zeros(m, dtype=torch.uint8, device=dev)
-        flags[gs[changed]] = 1
-        live = comm.max_(flags).bool()
-        if not bool(live.any()) or (max_iter is not None and it >= max_iter):
-            break
-    return cent, ncent, assign, it
-
-
-def _hkmeans(comm: _Comm, x: torch.Tensor, k: int, L: int, generator, progress: bool, max_iter):
-    """``loop.vocabulary._hkmeans`` over ranks: ``parent (M,)``, ``desc (M, 4)`` on every rank."""
-    dev = x.device
-    n = x.shape[0]
-    parents = [torch.full((1,), -1, dtype=torch.int64, device=dev)]
-    descs = [torch.zeros(1, 4, dtype=torch.int64, device=dev)]
-    next_id = 1
-    node = torch.zeros(n, dtype=torch.int64, device=dev)
-    active = torch.ones(n, dtype=torch.bool, device=dev)
-    bits = _unpack_bits(x)
-    for lev in range(1, L + 1):
-        t0 = time.perf_counter()
-        idx = active.nonzero().squeeze(1)
-        cnt = torch.zeros(next_id, dtype=torch.int64, device=dev)
-        cnt = comm.sum_(cnt.index_add_(0, node[idx], torch.ones_like(idx)))
-        P = (cnt > 0).nonzero().squeeze(1)  # parents with active descriptors, in id order
-        if P.numel() == 0:
-            break
-        pl = torch.searchsorted(P, node[idx])
-        m = P.numel()
-        size = cnt[P]
-        small_p = size <= k
-        small = small_p[pl]
-        ncent = torch.where(small_p, size, torch.zeros_like(size))
-        local = torch.empty_like(idx)
-        # small groups: one child per descriptor in the global descriptor order
-        sl = pl[small]
-        order = torch.sort(sl, stable=True).indices
-        lcnt = torch.bincount(sl, minlength=m)
-        start = torch.cumsum(lcnt, 0) - lcnt
-        rank = torch.empty_like(sl)
-        rank[order] = torch.arange(sl.numel(), device=dev) - start[sl[order]]
-        below = comm.gather(lcnt)[: comm.rank].sum(0)  # the group's descriptors on lower ranks
-        local[small] = rank + below[sl]
-        big_p = ~small_p
-        iters = 0
-        cent = None
-        if bool(big_p.any()):
-            remap = torch.cumsum(big_p.to(torch.int64), 0) - 1
-            bsel = (~small).nonzero().squeeze(1)
-            gb = remap[pl[bsel]]
-            mb = int(big_p.sum())
-            cent, nc, a, iters = _kmedians_level(comm, x[idx[bsel]], bits[idx[bsel]], gb, mb, k, generator, max_iter)
-            ncent[big_p] = nc
-            local[bsel] = a
-        base = next_id + torch.cumsum(ncent, 0) - ncent
-        child = base[pl] + local
-        T = int(ncent.sum())
-        lvl_parent = torch.repeat_interleave(P, ncent)
-        lvl_desc = torch.zeros(T, 4, dtype=torch.int64, device=dev)
-        lvl_desc[child[small] - next_id] = x[idx[small]]
-        comm.sum_(lvl_desc)  # each small child's descriptor lives on one rank: exact
-        if cent is not None:  # the same centres on every rank: filled after the sum
-            bb = base[big_p]
-            slot = torch.arange(k, device=dev)
-            ok = slot < ncent[big_p][:, None]
-            lvl_desc[(bb[:, None] + slot - next_id)[ok]] = cent[ok]
-        node[idx] = child
-        csize = comm.sum_(torch.bincount(child - next_id, minlength=T))
-        active[idx] = (csize[child - next_id] > 1) & (lev < L)
-        parents.append(lvl_parent)
-        descs.append(lvl_desc)
-        next_id += T
-        if progress and comm.rank == 0:
-            print(f"[vocabulary] level {lev}: {m} parents ({int(big_p.sum())} clustered), "
-                  f"{T} nodes, {iters} k-medians iterations, {time.perf_counter() - t0:.2f} s")
-    return torch.cat(parents), torch.cat(descs)
+    def unique(self, ids: torch.Tensor, size: int) -> tuple:
+        """``(ids in [0, size) present on any rank (ascending), index of each of ``ids`` in them)``."""
+        present = torch.zeros(size, dtype=torch.uint8, device=ids.device)
+        present[ids] = 1
+        uniq = self.max_(present).nonzero().squeeze(1)
+        return uniq, torch.searchsorted(uniq, ids)
 
 
 def train_vocabulary(desc: torch.Tensor, valid: Optional[torch.Tensor] = None, k: int = 10, L: int = 6,
@@ -294,7 +141,7 @@ def train_vocabulary(desc: torch.Tensor, valid: Optional[torch.Tensor] = None, k
     if totals[0] == 0:
         raise ValueError("desc: no valid training descriptors")
     D_all = int(totals[1])
-    parent, ndesc = _hkmeans(comm, x, k, L, generator, progress, max_iter)
+    parent, ndesc = _hkmeans(x, k, L, generator, progress, max_iter, comm)
     M = parent.shape[0]
     cnt = torch.bincount(parent[1:], minlength=M)
     leaf = cnt == 0

@@ -17,7 +17,7 @@ Convention:
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterator, List, Tuple
+from typing import Callable, Iterator, List, Optional, Tuple
 from typing import Sequence as Seq
 
 import numpy as np
@@ -103,30 +103,10 @@ class MultiStream:
             )
 
     def __iter__(self) -> Iterator[Batch]:
-        B = len(self.sequences)
         iters = [iter(s) for s in self.sequences]
-        last: List[Frame | None] = [None] * B
-        ended = [False] * B
-        step = 0
-        while self.max_steps is None or step < self.max_steps:
-            alive = [False] * B
-            for b in range(B):
-                if ended[b]:
-                    continue
-                fr = next(iters[b], None)
-                if fr is None:
-                    ended[b] = True
-                    if last[b] is None:
-                        s = self.sequences[b]
-                        raise DataError(f"{s.name}: no readable frame in the sequence ({len(s)} listed, "
-                                        f"{len(s.skipped)} skipped as bad)")
-                    continue
-                self._check(fr)
-                last[b] = fr
-                alive[b] = True
-            if not any(alive):
-                return
-            frames = [f for f in last]  # every entry is set: a stream that never had a frame raised above
+        steps = lockstep(self.sequences, lambda b: next(iters[b], None), self._check, self.max_steps,
+                         lambda b: len(self.sequences[b].skipped))
+        for step, frames, alive in steps:
             raw = [f.image for f in frames]
             images = torch.from_numpy(np.stack(raw)[:, None])
             stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
@@ -139,7 +119,49 @@ class MultiStream:
                 sources=[f.source for f in frames],
                 raw=raw,
             )
-            step += 1
 
+
+def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check: Callable[[Frame], None],
+             max_steps: Optional[int], skipped: Callable[[int], int]) -> Iterator[Tuple[int, List[Frame], List[bool]]]:
+    """The steps of the module docstring's convention: ``(step, frames, alive)`` per step, ``frames``
+    the B streams' current frames (a dead stream's last one), ``alive`` which streams delivered one.
+
+    Shared by ``MultiStream`` and ``pipelines.FrameStream`` (same steps, masks and errors).
+
+    Args:
+        sequences: the B streams (for ``len`` and ``name`` in the error message).
+        next_frame: ``b -> Frame | None``: stream ``b``'s next readable frame, ``None`` at its end
+            (it raises ``DataError`` for a bad frame without ``skip_bad``).
+        check: called on every new frame (the size check).
+        max_steps: stop after this many steps (``None``: until every stream has ended).
+        skipped: ``b -> number of frames of stream b skipped as bad`` (for the error message).
+
+    Raises:
+        DataError: a stream ended without a readable frame.
+    """
+    B = len(sequences)
+    last: List[Optional[Frame]] = [None] * B
+    ended = [False] * B
+    step = 0
+    while max_steps is None or step < max_steps:
+        alive = [False] * B
+        for b in range(B):
+            if ended[b]:
+                continue
+            fr = next_frame(b)
+            if fr is None:
+                ended[b] = True
+                if last[b] is None:
+                    s = sequences[b]
+                    raise DataError(f"{s.name}: no readable frame in the sequence ({len(s)} listed, "
+                                    f"{skipped(b)} skipped as bad)")
+                continue
+            check(fr)
+            last[b] = fr
+            alive[b] = True
+        if not any(alive):
+            return
+        yield step, list(last), alive  # every entry is set: a stream that never had a frame raised above
+        step += 1
 
 __all__ = ["MultiStream", "Batch", "ns_to_seconds"]

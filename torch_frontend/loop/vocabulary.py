@@ -126,15 +126,62 @@ def _pack_bits(bits: torch.Tensor) -> torch.Tensor:
     return (b << shifts).sum(-1)
 
 
-def _segment_argmax(key: torch.Tensor, seg: torch.Tensor, m: int) -> torch.Tensor:
-    """Index (into ``key``) of the first maximum of ``key`` within each of ``m`` segments."""
-    n = key.numel()
+class _OneProcess:
+    """The communicator of one process: every reduction is the identity.
+
+    Training takes a communicator so that ``distributed.kmedians`` runs the same code over the
+    ranks of a process group (its ``_Comm`` has these methods, with all-reduces): ``sum_``,
+    ``max_``, ``min_`` reduce in place and return the tensor, ``gather`` stacks every rank's
+    tensor, ``offset`` places this rank's items in the global (rank-major) order, ``take`` fetches
+    rows by global index from the rank that holds them, ``unique`` gives the ids present on any
+    rank. Here they cost nothing, so the single-process path runs the plain algorithm.
+    """
+
+    rank = 0
+    world = 1
+
+    def sum_(self, t: torch.Tensor) -> torch.Tensor:
+        return t
+
+    max_ = min_ = sum_
+
+    def gather(self, t: torch.Tensor) -> torch.Tensor:
+        """``(world, *t.shape)``: ``t`` of every rank."""
+        return t[None]
+
+    def offset(self, n: int, device) -> tuple:
+        """``(this rank's offset, global total)`` of ``n`` items per rank."""
+        return 0, n
+
+    def take(self, x: torch.Tensor, gidx: torch.Tensor, offset: int) -> torch.Tensor:
+        """Rows ``gidx`` (global indices; this rank holds ``offset ..``) of ``x``, on every rank."""
+        return x[gidx]
+
+    def unique(self, ids: torch.Tensor, size: int) -> tuple:
+        """``(ids present on any rank (ascending), index of each of ``ids`` in them)``; ids in
+        ``[0, size)``."""
+        return torch.unique(ids, return_inverse=True)
+
+
+_ONE_PROCESS = _OneProcess()
+
+
+def _segment_argmax(key: torch.Tensor, seg: torch.Tensor, m: int, comm=_ONE_PROCESS, offset: int = 0,
+                    total: Optional[int] = None) -> torch.Tensor:
+    """Index of the first maximum of ``key`` within each of ``m`` segments.
+
+    Over ranks (``comm``): ``key`` holds the global items ``offset ..`` of ``total``; the result is
+    a global index, the same on every rank (MAX of the maxima, then MIN of the indices reaching it:
+    the first wins, as in one process).
+    """
+    n = key.numel() if total is None else total
     mx = torch.full((m,), -math.inf, dtype=key.dtype, device=key.device)
-    mx = mx.scatter_reduce(0, seg, key, "amax", include_self=True)
-    ar = torch.arange(n, device=key.device)
+    mx = comm.max_(mx.scatter_reduce(0, seg, key, "amax", include_self=True))
+    ar = torch.arange(offset, offset + key.numel(), device=key.device)
     cand = torch.where(key == mx[seg], ar, torch.full_like(ar, n))
     first = torch.full((m,), n, dtype=torch.int64, device=key.device)
-    return first.scatter_reduce(0, seg, cand, "amin", include_self=True).clamp(max=max(n - 1, 0))
+    first = comm.min_(first.scatter_reduce(0, seg, cand, "amin", include_self=True))
+    return first.clamp(max=max(n - 1, 0))
 
 
 def _assign(x: torch.Tensor, cent: torch.Tensor, g: torch.Tensor, ncent: torch.Tensor) -> torch.Tensor:
@@ -154,12 +201,17 @@ def _assign(x: torch.Tensor, cent: torch.Tensor, g: torch.Tensor, ncent: torch.T
     return out
 
 
-def _majority(bits: torch.Tensor, grp: torch.Tensor, m: int) -> torch.Tensor:
-    """Per-group bitwise majority (``2*count > n``) of ``bits (n, 256)``: ``(m, 4) int64``."""
+def _majority(bits: torch.Tensor, grp: torch.Tensor, m: int, comm=_ONE_PROCESS) -> torch.Tensor:
+    """Per-group bitwise majority (``2*count > n``) of ``bits (n, 256)``: ``(m, 4) int64``.
+
+    float32 counts (``index_add_`` is faster in float32 than in int32 on CPU) are exact integers
+    below 2^24 members per group, so their sum over ranks is exact in any order.
+    """
     counts = torch.zeros(m, 256, dtype=torch.float32, device=bits.device)
     for s in range(0, bits.shape[0], _CHUNK):
         counts.index_add_(0, grp[s:s + _CHUNK], bits[s:s + _CHUNK].to(torch.float32))
-    sizes = torch.bincount(grp, minlength=m).to(torch.float32)
+    comm.sum_(counts)
+    sizes = comm.sum_(torch.bincount(grp, minlength=m)).to(torch.float32)
     return _pack_bits(2.0 * counts > sizes[:, None])
 
 
@@ -170,65 +222,73 @@ def _rand(n: int, generator: Optional[torch.Generator], device: torch.device) ->
     return torch.rand(n, generator=generator, device=gdev, dtype=torch.float64).to(device)
 
 
-def _kmedians_level(x, bits, g, m, k, generator, max_iter):
+def _kmedians_level(x, bits, g, m, k, generator, max_iter, comm=_ONE_PROCESS):
     """Binary k-medians with k-means++ seeding for ``m`` independent groups at once.
 
     Args:
         x: (n, 4) int64 descriptors; bits: (n, 256) uint8 unpacked; g: (n,) group in [0, m).
+        comm: the communicator (``_OneProcess``; over ranks: this rank's rows of the groups).
     Returns:
         cent (m, k, 4) int64, ncent (m,) int64 centres per group, assign (n,) int64, iterations.
     """
     dev = x.device
     n = x.shape[0]
+    off, N = comm.offset(n, dev)
     cent = torch.zeros(m, k, 4, dtype=torch.int64, device=dev)
     ncent = torch.ones(m, dtype=torch.int64, device=dev)
     # 1. First centre uniformly at random per group (max of iid uniforms = uniform choice).
-    u = _rand(n, generator, dev)
-    cent[:, 0] = x[_segment_argmax(u, g, m)]
+    # Every rank draws the global vector and takes its slice.
+    u = _rand(N, generator, dev)[off:off + n]
+    cent[:, 0] = comm.take(x, _segment_argmax(u, g, m, comm, off, N), off)
     mind = _hamming_packed(x, cent[g, 0]).to(torch.float64)
     going = torch.ones(m, dtype=torch.bool, device=dev)
     for c in range(1, k):
-        dsum = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, g, mind)
+        # sums of integer distances in float64: exact below 2^53, in any order
+        dsum = comm.sum_(torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, g, mind))
         going = going & (dsum > 0)
         if not bool(going.any()):
             break
         # 2. Draw one point per group with probability ∝ D(x): Efraimidis–Spirakis keys
         # log(u)/w, max per group (w = 0 gives -inf and is never drawn while some w > 0).
-        u = _rand(n, generator, dev).clamp_min(1e-300)
-        key = torch.where(mind > 0, torch.log(u) / mind.clamp_min(1e-300), torch.full_like(mind, -math.inf))
-        pick = _segment_argmax(key, g, m)
-        cent[going, c] = x[pick[going]]
+        u = _rand(N, generator, dev).clamp_min(1e-300)
+        logu = torch.log(u)[off:off + n]  # the log of the whole draw, as one process takes it
+        key = torch.where(mind > 0, logu / mind.clamp_min(1e-300), torch.full_like(mind, -math.inf))
+        rows = comm.take(x, _segment_argmax(key, g, m, comm, off, N), off)
+        cent[going, c] = rows[going]
         ncent = torch.where(going, torch.full_like(ncent, c + 1), ncent)
         d = _hamming_packed(x, cent[g, c]).to(torch.float64)
         mind = torch.where(going[g], torch.minimum(mind, d), mind)
     assign = _assign(x, cent, g, ncent)
     live = torch.ones(m, dtype=torch.bool, device=dev)
     it = 0
+    slots = torch.arange(k, device=dev)
     while True:
         # Groups whose assignment did not change are converged: recomputing their centres would
         # reproduce the same centres and assignment, so only live groups are iterated.
         sub = live[g].nonzero().squeeze(1)
         gs = g[sub]
         cid = gs * k + assign[sub]
-        uniq, inv = torch.unique(cid, return_inverse=True)
+        uniq, inv = comm.unique(cid, m * k)  # the centres with members, ascending
         flat = cent.view(m * k, 4)
         # Every centre of a live group is recomputed; an empty group's mean is all zeros (DBoW2).
-        live_slots = (live[:, None] & (torch.arange(k, device=dev) < ncent[:, None])).view(-1)
+        live_slots = (live[:, None] & (slots < ncent[:, None])).view(-1)
         flat[live_slots] = 0
-        flat[uniq] = _majority(bits[sub], inv, uniq.numel())
+        flat[uniq] = _majority(bits[sub], inv, uniq.numel(), comm)
         new = _assign(x[sub], cent, gs, ncent)
         changed = new != assign[sub]
         assign[sub] = new
         it += 1
-        live = torch.zeros(m, dtype=torch.bool, device=dev)
-        live[gs[changed]] = True
+        flags = torch.zeros(m, dtype=torch.uint8, device=dev)  # uint8: all-reducible
+        flags[gs[changed]] = 1
+        live = comm.max_(flags).bool()
         if not bool(live.any()) or (max_iter is not None and it >= max_iter):
             break
     return cent, ncent, assign, it
 
 
-def _hkmeans(x: torch.Tensor, k: int, L: int, generator, progress: bool, max_iter):
-    """Hierarchical k-medians; returns ``parent (M,)`` and ``desc (M, 4)`` in node-id order."""
+def _hkmeans(x: torch.Tensor, k: int, L: int, generator, progress: bool, max_iter, comm=_ONE_PROCESS):
+    """Hierarchical k-medians; returns ``parent (M,)`` and ``desc (M, 4)`` in node-id order
+    (over ranks, ``comm``: ``x`` is this rank's rows, the result is the same on every rank)."""
     dev = x.device
     n = x.shape[0]
     parents = [torch.full((1,), -1, dtype=torch.int64, device=dev)]
@@ -240,24 +300,26 @@ def _hkmeans(x: torch.Tensor, k: int, L: int, generator, progress: bool, max_ite
     for lev in range(1, L + 1):
         t0 = time.perf_counter()
         idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
+        P, pl = comm.unique(node[idx], next_id)  # parents with active descriptors, in id (= creation) order
+        if P.numel() == 0:
             break
-        P, pl = torch.unique(node[idx], return_inverse=True)  # parents in id (= creation) order
         m = P.numel()
-        size = torch.bincount(pl, minlength=m)
+        size = comm.sum_(torch.bincount(pl, minlength=m))
         small_p = size <= k
         small = small_p[pl]
         ncent = torch.where(small_p, size, torch.zeros_like(size))
         local = torch.empty_like(idx)
-        # Small groups: one child per descriptor, in descriptor order (stable sort keeps it).
+        # Small groups: one child per descriptor, in the global descriptor order (stable sort
+        # keeps it; the group's descriptors on lower ranks come first).
         sl = pl[small]
-        if sl.numel():
-            order = torch.sort(sl, stable=True).indices
-            cnt = torch.bincount(sl, minlength=m)
-            start = torch.cumsum(cnt, 0) - cnt
-            rank = torch.empty_like(sl)
-            rank[order] = torch.arange(sl.numel(), device=dev) - start[sl[order]]
-            local[small] = rank
+        order = torch.sort(sl, stable=True).indices
+        lcnt = torch.bincount(sl, minlength=m)
+        start = torch.cumsum(lcnt, 0) - lcnt
+        rank = torch.empty_like(sl)
+        rank[order] = torch.arange(sl.numel(), device=dev) - start[sl[order]]
+        if comm.world > 1:  # a collective: every rank takes part
+            rank += comm.gather(lcnt)[: comm.rank].sum(0)[sl]
+        local[small] = rank
         big_p = ~small_p
         iters = 0
         cent = None
@@ -266,7 +328,8 @@ def _hkmeans(x: torch.Tensor, k: int, L: int, generator, progress: bool, max_ite
             bsel = (~small).nonzero().squeeze(1)
             gb = remap[pl[bsel]]
             mb = int(big_p.sum())
-            cent, nc, a, iters = _kmedians_level(x[idx[bsel]], bits[idx[bsel]], gb, mb, k, generator, max_iter)
+            cent, nc, a, iters = _kmedians_level(x[idx[bsel]], bits[idx[bsel]], gb, mb, k, generator, max_iter,
+                                                 comm)
             ncent[big_p] = nc
             local[bsel] = a
         base = next_id + torch.cumsum(ncent, 0) - ncent
@@ -275,18 +338,19 @@ def _hkmeans(x: torch.Tensor, k: int, L: int, generator, progress: bool, max_ite
         lvl_parent = torch.repeat_interleave(P, ncent)
         lvl_desc = torch.zeros(T, 4, dtype=torch.int64, device=dev)
         lvl_desc[child[small] - next_id] = x[idx[small]]
-        if cent is not None:
+        comm.sum_(lvl_desc)  # over ranks: each small child's descriptor lives on one rank, exact
+        if cent is not None:  # the same centres on every rank: filled after the sum
             bb = base[big_p]
             slot = torch.arange(k, device=dev)
             ok = slot < ncent[big_p][:, None]
             lvl_desc[(bb[:, None] + slot - next_id)[ok]] = cent[ok]
         node[idx] = child
-        csize = torch.bincount(child - next_id, minlength=T)
+        csize = comm.sum_(torch.bincount(child - next_id, minlength=T))
         active[idx] = (csize[child - next_id] > 1) & (lev < L)
         parents.append(lvl_parent)
         descs.append(lvl_desc)
         next_id += T
-        if progress:
+        if progress and comm.rank == 0:
             print(f"[vocabulary] level {lev}: {m} parents ({int(big_p.sum())} clustered), "
                   f"{T} nodes, {iters} k-medians iterations, {time.perf_counter() - t0:.2f} s")
     return torch.cat(parents), torch.cat(descs)

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError
-from ..io.multistream import Batch, ns_to_seconds
+from ..io.multistream import Batch, lockstep, ns_to_seconds
 
 __all__ = ["FrameStream", "DEFAULT_PREFETCH"]
 
@@ -251,33 +251,14 @@ class FrameStream:
                     raise DataError(s[2])
                 self._skipped[b].append((s[1], s[2]))
 
-        last: List[Any] = [None] * B
-        ended = [False] * B
-        step = 0
         try:
-            while self.max_steps is None or step < self.max_steps:
-                alive = [False] * B
-                for b in range(B):
-                    if ended[b]:
-                        continue
-                    fr = next_frame(b)
-                    if fr is None:
-                        ended[b] = True
-                        if last[b] is None:
-                            s = self.sequences[b]
-                            raise DataError(f"{s.name}: no readable frame in the sequence ({len(s)} listed, "
-                                            f"{len(self._skipped[b])} skipped as bad)")
-                        continue
-                    self._check(fr)
-                    last[b] = fr
-                    alive[b] = True
-                if not any(alive):
-                    return
-                raw = [f.image for f in last]
-                stamps = np.array([f.stamp_ns for f in last], dtype=np.int64)
+            steps = lockstep(self.sequences, next_frame, self._check, self.max_steps,
+                             lambda b: len(self._skipped[b]))
+            for step, frames, alive in steps:
+                raw = [f.image for f in frames]
+                stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
                 yield Batch(step=step, images=self._stage(raw, step), timestamps=torch.from_numpy(ns_to_seconds(stamps)),
-                            stamps_ns=stamps, alive=torch.tensor(alive), sources=[f.source for f in last], raw=raw)
-                step += 1
+                            stamps_ns=stamps, alive=torch.tensor(alive), sources=[f.source for f in frames], raw=raw)
         finally:
             close = getattr(rows, "close", None)
             if close is not None:
