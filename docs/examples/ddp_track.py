@@ -81,6 +81,9 @@ def main(argv=None) -> float:
     mean = float(summed[0] / summed[1].clamp_min(1))
     if env.rank == 0:
         print(f"{env.world_size} ranks, {len(inputs)} sequences: mean loss {mean:.3e} over {int(summed[1])} steps")
+    # every rank reaches the teardown together: destroying a gloo group while a peer is already gone
+    # can hang (pytorch/pytorch#75097)
+    dist.barrier()
     dist.destroy_process_group()
     return mean
 
