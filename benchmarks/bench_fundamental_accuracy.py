@@ -64,30 +64,21 @@ sys.path.insert(0, str(REPO))
 import torch_frontend as tf  # noqa: E402
 from torch_frontend import ransac  # noqa: E402
 from torch_frontend.testing.flight import synthetic_flight  # noqa: E402
+from torch_frontend.testing.two_view import line_distances  # noqa: E402
+from torch_frontend.testing.two_view import planted_scenes as two_view_scenes  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import RESULTS, write_atomic, write_json_atomic  # noqa: E402
 
 RATES = (0.0, 0.10, 0.25, 0.40)
 THRESHOLD, CONFIDENCE = 1.0, 0.99
-K = np.array([[460.0, 0, 376.0], [0, 460.0, 240.0], [0, 0, 1.0]])
 SHARED_MICRO = REPO.parent / "shared" / "data" / "sequences" / "euroc_v1_01_easy_micro"
 
 
 # ----------------------------------------------------------------------------------------------
 # inputs
 # ----------------------------------------------------------------------------------------------
-def _skew(t):
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
-def _line_dists(F, a, c):
-    """Distances of ``a`` to its lines ``F^T c`` (image 1) and of ``c`` to ``F a`` (image 2), px."""
-    h1, h2 = np.c_[a, np.ones(len(a))], np.c_[c, np.ones(len(c))]
-    l2, l1 = h1 @ F.T, h2 @ F
-    d = np.abs((h2 * l2).sum(1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return d / np.hypot(l1[:, 0], l1[:, 1]), d / np.hypot(l2[:, 0], l2[:, 1])
+_line_dists = line_distances
 
 
 def _opencv_error(F, a, c):
@@ -95,34 +86,11 @@ def _opencv_error(F, a, c):
 
 
 def planted_scenes(B, rate, seed, n=150, noise=0.3, noisy_first=True):
-    """Problem dicts: p1, p2 (noisy, outliers planted), g1, g2 (noise-free), F, inlier/outlier masks."""
-    rng = np.random.default_rng(seed)
-    Ki = np.linalg.inv(K)
-    out = []
-    for _ in range(B):
-        z = rng.uniform(3, 15, n)
-        X = np.stack([rng.uniform(-0.8, 0.8, n) * z, rng.uniform(-0.5, 0.5, n) * z, z], -1)
-        R, _ = cv2.Rodrigues(rng.normal(0, 0.05, 3))
-        t = rng.normal(0, 0.3, 3) + np.array([0.4, 0.0, 0.1])
-        g1 = X @ K.T
-        g1 = g1[:, :2] / g1[:, 2:]
-        g2 = (X @ R.T + t) @ K.T
-        g2 = g2[:, :2] / g2[:, 2:]
-        F = Ki.T @ _skew(t) @ R @ Ki
-        a = g1 + (rng.normal(0, noise, (n, 2)) if noisy_first else 0.0)
-        c = g2 + rng.normal(0, noise, (n, 2))
-        planted = np.zeros(n, bool)
-        planted[rng.choice(n, int(round(rate * n)), replace=False)] = True
-        for i in np.flatnonzero(planted):
-            while True:
-                q = rng.uniform([0, 0], [752, 480], (64, 2))
-                d1, d2 = _line_dists(F, np.repeat(g1[i : i + 1], 64, 0), q)
-                good = (np.hypot(*(q - g2[i]).T) >= 20) & (np.minimum(d1, d2) >= 5)
-                if good.any():
-                    c[i] = q[good.argmax()]
-                    break
-        out.append(dict(p1=a, p2=c, g1=g1, g2=g2, F=F, inlier=~planted, outlier=planted))
-    return out
+    """Problem dicts: p1, p2 (noisy, outliers planted), g1, g2 (noise-free), F, inlier/outlier masks
+    (``torch_frontend.testing.two_view.planted_scenes``)."""
+    s = two_view_scenes(B, rate, seed, n=n, noise=noise, noisy_first=noisy_first)
+    return [dict(p1=s["p1"][b], p2=s["p2"][b], g1=s["g1"][b], g2=s["g2"][b], F=s["F"][b],
+                 inlier=~s["planted"][b], outlier=s["planted"][b]) for b in range(B)]
 
 
 def flight_problems(rate, seed, frames, Hs, steps=(1, 2, 4, 8)):

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -23,6 +22,7 @@ from torch_frontend import ransac
 from torch_frontend.errors import ConfigError
 from torch_frontend.ransac import find_fundamental, refit_fundamental
 from torch_frontend.testing.dispatch_count import OpCounter
+from torch_frontend.testing.two_view import line_distances, planted_scenes
 
 from .conftest import REPO
 from .test_ransac import _cv_mask, _plant, _synthetic_scenes
@@ -30,54 +30,13 @@ from .test_ransac_capturable import _scatter
 
 OPENCV = ransac._state_of(ransac.OPENCV_SEED)
 RATES = [0.0, 0.10, 0.25, 0.40]
-_K = np.array([[460.0, 0, 376.0], [0, 460.0, 240.0], [0, 0, 1.0]])
-
-
-def _skew(t):
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-
-
 def _gt_scenes(k: int, rate: float, seed: int, n: int = 150, noise: float = 0.3):
-    """``k`` scenes with exact ground truth: points at 3..15 m seen by two 460-px pinholes (752x480),
-    Gaussian noise ``noise`` px per coordinate in both images, ``rate`` of the second-image points
-    replaced by uniform points >= 20 px from the true match and >= 5 px from the true epipolar
-    lines in both images. Returns ``p1, p2 (k, n, 2)``, the noise-free ``g1, g2``, ``F (k, 3, 3)`` and
-    the planted mask ``(k, n)``."""
-    rng = np.random.default_rng(seed)
-    out = [[] for _ in range(6)]
-    Ki = np.linalg.inv(_K)
-    for _ in range(k):
-        z = rng.uniform(3, 15, n)
-        X = np.stack([rng.uniform(-0.8, 0.8, n) * z, rng.uniform(-0.5, 0.5, n) * z, z], -1)
-        R, _ = cv2.Rodrigues(rng.normal(0, 0.05, 3))
-        t = rng.normal(0, 0.3, 3) + np.array([0.4, 0.0, 0.1])
-        g1 = X @ _K.T
-        g1 = g1[:, :2] / g1[:, 2:]
-        g2 = (X @ R.T + t) @ _K.T
-        g2 = g2[:, :2] / g2[:, 2:]
-        F = Ki.T @ _skew(t) @ R @ Ki
-        a, c = g1 + rng.normal(0, noise, (n, 2)), g2 + rng.normal(0, noise, (n, 2))
-        planted = np.zeros(n, bool)
-        planted[rng.choice(n, int(round(rate * n)), replace=False)] = True
-        for i in np.flatnonzero(planted):
-            while True:
-                q = rng.uniform([0, 0], [752, 480], (64, 2))
-                d1, d2 = _line_dists(F, np.repeat(g1[i : i + 1], 64, 0), q)
-                good = (np.hypot(*(q - g2[i]).T) >= 20) & (np.minimum(d1, d2) >= 5)
-                if good.any():
-                    c[i] = q[good.argmax()]
-                    break
-        for lst, v in zip(out, (a, c, g1, g2, F, planted)):
-            lst.append(v)
-    return [np.stack(v) for v in out]
+    """``k`` planted scenes (``torch_frontend.testing.two_view``) as ``p1, p2, g1, g2, F, planted``."""
+    s = planted_scenes(k, rate, seed, n=n, noise=noise)
+    return [s[name] for name in ("p1", "p2", "g1", "g2", "F", "planted")]
 
 
-def _line_dists(F, a, c):
-    """Distances of ``a`` to the lines ``F^T c`` (image 1) and of ``c`` to ``F a`` (image 2)."""
-    h1, h2 = np.c_[a, np.ones(len(a))], np.c_[c, np.ones(len(c))]
-    l2, l1 = h1 @ F.T, h2 @ F
-    d = np.abs((h2 * l2).sum(1))
-    return d / np.hypot(l1[:, 0], l1[:, 1]), d / np.hypot(l2[:, 0], l2[:, 1])
+_line_dists = line_distances
 
 
 def _f_error(F, g1, g2):

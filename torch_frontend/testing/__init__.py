@@ -10,6 +10,10 @@ your own code (or a modified kernel) the same way.
   keyframes over as a VIO would): the pose graph's test bed and ``torch-frontend demo --loop``.
 * ``flight``: a camera flying over a real photo with the exact homographies
   (``synthetic_flight``): the tracker's sub-pixel ground truth.
+* ``two_view``: two-view scenes with planted outliers and exact F (``planted_scenes``): the F-RANSAC
+  test bed.
+* ``dispatch_count``: ``OpCounter``, the kernels, views and host syncs of any tensor code as a GPU
+  would see them.
 
 Not imported by ``import torch_frontend``; names are imported lazily from their modules.
 """
@@ -31,6 +35,9 @@ _EXPORTS = {
     "make_room": "synthetic",
     "render_loop_sequence": "synthetic",
     "synthetic_flight": "flight",
+    "planted_scenes": "two_view",
+    "line_distances": "two_view",
+    "OpCounter": "dispatch_count",
 }
 
 __all__ = sorted(_EXPORTS)
