@@ -129,16 +129,7 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, captu
     hist = hist.view(B, T, 256)
 
     # --- clip and redistribute exactly as OpenCV (tiny (B, T, 256) tensors) -----------------
-    if clip_limit > 0.0:
-        clip = max(int(clip_limit * area / 256), 1)
-        excess = (hist - clip).clamp_min_(0).sum(-1, keepdim=True)  # (B, T, 1)
-        hist = hist.clamp_max(clip)
-        batch = excess // 256
-        residual = excess - batch * 256
-        step = (256 // residual.clamp_min(1)).clamp_min_(1)
-        extra = (geo.i256 % step == 0) & (geo.i256 // step < residual)
-        hist += batch
-        hist += extra
+    hist = _clip_histograms(hist, clip_limit, area, geo.i256)
 
     # float32 like OpenCV: sum * lutScale with lutScale = 255.f / area, then cvRound + saturate.
     lut = (hist.cumsum(-1).float() * geo.lut_scale).round_().clamp_(0, 255)  # (B, T, 256) float32
@@ -181,6 +172,25 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, captu
     return out.view(B, H, W)
 
 
+def _clip_histograms(hist: torch.Tensor, clip_limit: float, area: int, i256: torch.Tensor) -> torch.Tensor:
+    """OpenCV's clip and redistribution of ``hist (B, T, 256)`` integer tile histograms (``area``
+    pixels per tile; ``clip_limit <= 0``: no clipping): bins above ``max(int(clip_limit area / 256),
+    1)`` are cut, the excess spread evenly, its remainder one count every ``step`` bins. ``i256``:
+    ``arange(256)`` on the device. Integer arithmetic in ``hist``'s dtype."""
+    if clip_limit <= 0.0:
+        return hist
+    clip = max(int(clip_limit * area / 256), 1)
+    excess = (hist - clip).clamp_min_(0).sum(-1, keepdim=True, dtype=hist.dtype)  # (B, T, 1)
+    hist = hist.clamp_max(clip)
+    batch = excess // 256
+    residual = excess - batch * 256
+    step = (256 // residual.clamp_min(1)).clamp_min_(1)
+    extra = (i256 % step == 0) & (i256 // step < residual)
+    hist += batch
+    hist += extra
+    return hist
+
+
 def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
     """:func:`_clahe_impl` in one pass with a fixed op sequence (``capturable=True``).
 
@@ -205,16 +215,7 @@ def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> tor
     hist = torch.zeros(B * T * 256, dtype=torch.int32, device=dev)
     hist.index_add_(0, key, geo.ones.expand(key.numel()))
     hist = hist.view(B, T, 256)
-    if clip_limit > 0.0:  # as the default path (integers: the dtype does not change a value)
-        clip = max(int(clip_limit * area / 256), 1)
-        excess = (hist - clip).clamp_min_(0).sum(-1, keepdim=True, dtype=torch.int32)
-        hist = hist.clamp_max(clip)
-        batch = excess // 256
-        residual = excess - batch * 256
-        step = (256 // residual.clamp_min(1)).clamp_min_(1)
-        extra = (geo.i256 % step == 0) & (geo.i256 // step < residual)
-        hist += batch
-        hist += extra
+    hist = _clip_histograms(hist, clip_limit, area, geo.i256)  # integers: the dtype changes no value
     lut = (hist.cumsum(-1).float() * geo.lut_scale).round_().clamp_(0, 255).to(torch.uint8)  # (B, T, 256)
     packed = lut.view(B, T * 256).index_select(1, geo.lut_bytes).view(torch.int32).view(-1)  # (B * cells * 256,)
     q = packed.index_select(0, src.reshape(-1).int().add_(geo.cell_key.view(-1)))
