@@ -52,6 +52,16 @@ def load_gray(path):
     return img
 
 
+@pytest.fixture(scope="module")
+def single_thread():
+    """One intra-op thread for a module of many small ops: on a busy 2-core runner OpenMP spin-waits
+    made such tests up to 10x slower. Use with ``pytestmark = pytest.mark.usefixtures("single_thread")``."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(params=DEVICES)
 def device(request):
     return torch.device(request.param)

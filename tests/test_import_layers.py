@@ -35,6 +35,8 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("kernels", ("_tuning", "equalize", "pyramid", "corners", "masks", "lk", "ransac")),
     # the front end: one pure step over the feature table, and the FeatureTracker around it
     ("front end", ("tracker",)),
+    # training through the front end: nn.Module wrappers, tracking losses, the soft status
+    ("learning", ("learn",)),
     # the back end: place recognition, verification, the pose graph
     ("back end", ("loop",)),
     # the references: the OpenCV oracle pipeline and the synthetic test beds

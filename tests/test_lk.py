@@ -23,6 +23,8 @@ from torch_frontend.errors import ConfigError
 from torch_frontend.lk import track_lk
 from torch_frontend.pyramid import build_pyramid
 
+pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
+
 CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
@@ -111,16 +113,6 @@ def similarity(tx, ty, rot_deg, scale, centre):
                   [0, 0, 1.0]])
     return np.array([[1, 0, cx + tx], [0, 1, cy + ty], [0, 0, 1.0]]) @ R @ np.array(
         [[1, 0, -cx], [0, 1, -cy], [0, 0, 1.0]])
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    """LK work here is many small ops: one intra-op thread avoids oversubscription on a busy 2-core
-    runner (OpenMP spin-waits made these tests up to 10x slower there)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

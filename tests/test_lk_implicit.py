@@ -22,18 +22,12 @@ from torch_frontend.errors import ConfigError
 from torch_frontend.lk import LKOptions, _track_lk_impl, track_lk
 from torch_frontend.pyramid import build_pyramid
 
+pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
+
 WIN = 21
 FD_REL = 0.01  # relative agreement with central differences
 FD_FRACTION = 0.99  # of the converged points
 NORM_BAR, NORM_FRACTION = 10.0, 0.999
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _pairs():

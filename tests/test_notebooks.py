@@ -31,7 +31,7 @@ def _ensure_kernel() -> str:
 def test_notebooks_exist_and_are_stripped():
     names = [p.name for p in NOTEBOOKS]
     assert names == ["01_quickstart.ipynb", "02_many_cameras.ipynb", "03_gradients.ipynb",
-                     "04_loop_closure.ipynb"]
+                     "04_loop_closure.ipynb", "05_learned_frontend.ipynb"]
     for p in NOTEBOOKS:
         nb = nbformat.read(p, as_version=4)
         nbformat.validate(nb)

@@ -10,14 +10,7 @@ import torch
 from tests.conftest import load_gray, sample_frames
 from torch_frontend.pyramid import Pyramid, build_pyramid, pad_reflect101, pyr_down, scharr_gradients
 
-
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    """Small ops: one intra-op thread avoids oversubscription on a busy 2-core runner."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
 
 
 @pytest.fixture(scope="module")

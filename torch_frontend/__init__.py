@@ -45,6 +45,11 @@ _EXPORTS = {
     "FeatureTracker": "tracker",
     "FeatureFrame": "tracker",
     "draw_tracks": "viz",
+    # learning through the front end
+    "LucasKanade": "learn",
+    "TrackerModule": "learn",
+    "tracking_loss": "learn",
+    "soft_status": "learn",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]

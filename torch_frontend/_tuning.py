@@ -171,6 +171,32 @@ def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
     return True
 
 
+def straight_through(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
+    """Value of ``hard`` with the gradient of ``soft`` (straight-through estimator: roundings of the
+    8-bit emulation). The reference form adds ``soft - soft.detach()``, which is exactly 0 for finite
+    ``soft``, so the value is ``hard`` bit for bit; the fast form (no derivative wanted, also under
+    no ``torch.func`` / forward-AD transform, whose tensors leave ``requires_grad`` False) is ``hard``.
+    (Not on the 8-bit path's per-frame work: it runs only where gradients may be recorded.)"""
+    if inplace_ok(soft) and not transforms_active():
+        return hard
+    return hard.detach() + (soft - soft.detach())
+
+
+def transforms_active() -> bool:
+    """A ``torch.func`` transform or a forward-AD dual level is active (never while dynamo traces:
+    a compiled graph sees plain tensors). ~0.2 us. Under a transform ``requires_grad`` does not say
+    whether a derivative is wanted (dual and functorch-wrapped tensors leave it False)."""
+    if torch.compiler.is_compiling():
+        return False
+    return torch.autograd.forward_ad._current_level >= 0 or torch._C._functorch.peek_interpreter_stack() is not None
+
+
+def derivative_wanted(*tensors: Optional[torch.Tensor]) -> bool:
+    """Some derivative through these tensors may be recorded: one of them requires a gradient, or a
+    ``torch.func`` transform / forward-AD level is active. ``None`` entries are ignored."""
+    return any(t is not None and t.requires_grad for t in tensors) or transforms_active()
+
+
 @contextlib.contextmanager
 def reference_forms() -> Iterator[None]:
     """Within this block every kernel takes its reference (out-of-place, differentiable) form,

@@ -191,6 +191,39 @@ def _clip_histograms(hist: torch.Tensor, clip_limit: float, area: int, i256: tor
     return hist
 
 
+def _static_histograms(src: torch.Tensor, clip_limit: float, gx: int, gy: int):
+    """The clipped tile histograms of ``src (B, H, W)`` uint8 in a fixed op sequence: ``(hist (B, T,
+    256) int32, geo, area)`` (histograms by ``index_add_`` of ones: int32 atomics on CUDA, no
+    ``bincount``, whose output size is read back)."""
+    B, H, W = src.shape
+    dev = src.device
+    if W % gx == 0 and H % gy == 0:
+        lut_src = src
+    else:
+        lut_src = F.pad(src[:, None].float(), (0, gx - W % gx, 0, gy - H % gy), mode="reflect")[:, 0].to(torch.uint8)
+    Hs, Ws = lut_src.shape[-2:]
+    area = (Hs // gy) * (Ws // gx)
+    geo = _geometry(B, H, W, Hs, Ws, gx, gy, dev)
+    key = lut_src.reshape(-1).int().add_(geo.hist_key.view(-1))  # (B * Hs * Ws,) int32
+    hist = torch.zeros(B * gy * gx * 256, dtype=torch.int32, device=dev)
+    hist.index_add_(0, key, geo.ones.expand(key.numel()))
+    hist = _clip_histograms(hist.view(B, gy * gx, 256), clip_limit, area, geo.i256)  # integers: exact
+    return hist, geo, area
+
+
+def _blend(q: torch.Tensor, geo, B: int, H: int, W: int) -> torch.Tensor:
+    """OpenCV's float32 bilinear blend of the four tile values per pixel ``q (B * H, W, 4)`` float32
+    (l11, l12, l21, l22): ``(l11 xa1 + l12 xa) ya1 + (l21 xa1 + l22 xa) ya``, every product and sum
+    rounded separately, as OpenCV (no fused multiply-add). Returns ``(B * H, W)``; ``q`` is scaled in place."""
+    q *= geo.xw
+    top = torch.add(q[..., 0], q[..., 1])
+    bot = torch.add(q[..., 2], q[..., 3])
+    top *= geo.ya1
+    bot *= geo.ya
+    top += bot
+    return top
+
+
 def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
     """:func:`_clahe_impl` in one pass with a fixed op sequence (``capturable=True``).
 
@@ -200,34 +233,54 @@ def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> tor
     index and read per pixel as one int32 (4 bytes: l11, l12, l21, l22).
     """
     B, H, W = src.shape
-    dev = src.device
-    if W % gx == 0 and H % gy == 0:
-        lut_src = src
-    else:
-        lut_src = F.pad(src[:, None].float(), (0, gx - W % gx, 0, gy - H % gy), mode="reflect")[:, 0].to(torch.uint8)
-    Hs, Ws = lut_src.shape[-2:]
-    th, tw = Hs // gy, Ws // gx
-    area = th * tw
-    T = gy * gx
-    geo = _geometry(B, H, W, Hs, Ws, gx, gy, dev)
-
-    key = lut_src.reshape(-1).int().add_(geo.hist_key.view(-1))  # (B * Hs * Ws,) int32
-    hist = torch.zeros(B * T * 256, dtype=torch.int32, device=dev)
-    hist.index_add_(0, key, geo.ones.expand(key.numel()))
-    hist = hist.view(B, T, 256)
-    hist = _clip_histograms(hist, clip_limit, area, geo.i256)  # integers: the dtype changes no value
+    hist, geo, _ = _static_histograms(src, clip_limit, gx, gy)
+    T = gx * gy
     lut = (hist.cumsum(-1).float() * geo.lut_scale).round_().clamp_(0, 255).to(torch.uint8)  # (B, T, 256)
     packed = lut.view(B, T * 256).index_select(1, geo.lut_bytes).view(torch.int32).view(-1)  # (B * cells * 256,)
     q = packed.index_select(0, src.reshape(-1).int().add_(geo.cell_key.view(-1)))
-    f = q.view(torch.uint8).view(B * H, W, 4).float()
-    f *= geo.xw
-    top = torch.add(f[..., 0], f[..., 1])
-    bot = torch.add(f[..., 2], f[..., 3])
-    top *= geo.ya1
-    bot *= geo.ya
-    top += bot
+    top = _blend(q.view(torch.uint8).view(B * H, W, 4).float(), geo, B, H, W)
     # in [0, 255] up to float rounding: the rounded value converts exactly
     return top.round_().to(torch.uint8).view(B, H, W)
+
+
+def _clahe_slope(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
+    """The local slope ``d out / d in`` of CLAHE's mapping at every pixel of ``src (B, H, W)`` uint8:
+    ``(B, H, W)`` float32, grey levels out per grey level in.
+
+    The mapping of a pixel with grey level ``v`` is the bilinear blend of four tile LUTs, and each
+    LUT is the clipped histogram's cumulative sum times ``255 / area`` (rounded). The slope is the
+    blend of the four *unrounded* LUTs' central differences, ``(c[v + 1] - c[v - 1]) / 2 =
+    (h[v] + h[v + 1]) 255 / (2 area)`` (one-sided at 0 and 255): the rounded LUT's steps are 0 or
+    1 grey level wide, and its difference quotient would be 0 or jump. Clipping bounds it by about
+    ``clip_limit`` (the point of contrast limiting): the gradient cannot explode. The LUTs
+    themselves (the histograms) are treated as constants: a discrete function of the image.
+    """
+    B, H, W = src.shape
+    hist, geo, _ = _static_histograms(src, clip_limit, gx, gy)
+    T = gx * gy
+    c = hist.cumsum(-1).float() * geo.lut_scale  # (B, T, 256) unrounded LUTs
+    slope = torch.empty_like(c)
+    slope[..., 1:-1] = (c[..., 2:] - c[..., :-2]) * 0.5
+    slope[..., 0] = c[..., 1] - c[..., 0]
+    slope[..., -1] = c[..., -1] - c[..., -2]
+    # the four tile slopes of every (cell, value), as the capturable path's packed LUT bytes
+    cell = slope.view(B, T * 256).index_select(1, geo.lut_bytes).view(-1, 4)  # (B * cells * 256, 4)
+    q = cell.index_select(0, src.reshape(-1).int().add_(geo.cell_key.view(-1))).view(B * H, W, 4)
+    return _blend(q, geo, B, H, W).view(B, H, W)
+
+
+def _clahe_straight_through(img: torch.Tensor, clip_limit: float, gx: int, gy: int, *,
+                            capturable: bool = False) -> torch.Tensor:
+    """CLAHE of ``img (B, H, W)`` float grey levels that are integers 0..255 (the differentiable
+    tracker's door makes them so): ``(B, H, W)`` float holding :func:`_clahe_impl`'s output bit for bit,
+    with the straight-through gradient ``d out / d in`` = the LUT's local slope
+    (:func:`_clahe_slope`). Without a gradient to record: the 8-bit result as float."""
+    u8 = img.detach().to(torch.uint8).contiguous()
+    hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable).to(img.dtype)
+    if not _tuning.derivative_wanted(img):
+        return hard
+    slope = _clahe_slope(u8, clip_limit, gx, gy).to(img.dtype)
+    return hard + slope * (img - img.detach())  # img - img.detach() is exactly 0: the value is hard
 
 
 class _Geo:

@@ -114,10 +114,17 @@ gradient w.r.t. the points is the one-sided (right) derivative. The static path 
 same function: its gradients w.r.t. the points equal the early-exit path's bit for bit, those
 w.r.t. float images to rounding (the backward adds the windows' gradients into the images in
 another order).
+
+``torch.func``: ``vmap`` of :func:`track_lk` folds the vmapped dimension into the call (streams and
+points are independent; the per-``v`` values bit for bit), ``grad``/``vjp``/``jacrev`` and forward
+mode (``jvp``, ``jacfwd``, ``hessian``, ``torch.autograd.forward_ad`` dual tensors) differentiate
+the reference forms, in both grad modes and on both paths; ``vmap`` *outside* a derivative
+transform with vmapped primals (``vmap(grad(f))``) raises (see :func:`_track_lk_transformed`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
@@ -153,13 +160,41 @@ _IMPLICIT_MAX_STEP = 0.1
 _IMPLICIT_REFINE = 2  # Newton refinements of the linearisation point (no graph)
 
 
-def _ste(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
-    """Value of ``hard`` with the gradient of ``soft`` (straight-through estimator). The reference
-    form adds ``soft - soft.detach()``, which is exactly 0, so the value is ``hard`` bit for bit; the
-    fast form (no gradient needed) is ``hard`` itself."""
-    if _tuning.inplace_ok(soft):
-        return hard
-    return hard.detach() + (soft - soft.detach())
+def _plain_cache(maxsize: int):
+    """``functools.lru_cache(maxsize)`` for the per-size constant builders, whose entries are built
+    outside ``torch.func`` transforms: under ``grad``/``jvp`` even a factory function returns a
+    tensor wrapped at the transform's level, which, kept in the cache, would outlive it (an
+    "escaped" wrapper in a later call). Outside transforms (and while dynamo traces) the builder
+    runs as is."""
+
+    def deco(fn):
+        @functools.wraps(fn)
+        def build(*args):
+            if torch.compiler.is_compiling() or torch._C._functorch.peek_interpreter_stack() is None:
+                return fn(*args)
+            with _outside_transforms():
+                return fn(*args)
+
+        return functools.lru_cache(maxsize=maxsize)(build)
+
+    return deco
+
+
+@contextlib.contextmanager
+def _outside_transforms():
+    """The functorch interpreter stack cleared for the block (restored after)."""
+    F = torch._C._functorch
+    saved = []
+    try:
+        while F.peek_interpreter_stack() is not None:
+            saved.append(F.pop_dynamic_layer_stack())
+        yield
+    finally:
+        while saved:
+            F.push_dynamic_layer_stack(saved.pop())
+
+
+_ste = _tuning.straight_through
 
 
 def _soft_weights(frac: torch.Tensor) -> torch.Tensor:
@@ -196,7 +231,7 @@ def _pitch(x: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(x, (0, 1)).flatten(-2)
 
 
-@functools.lru_cache(maxsize=128)
+@_plain_cache(128)
 def _level_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
     """Per level-size constants (cached: they depend on sizes only).
 
@@ -213,7 +248,7 @@ def _level_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
     return rowin, colin, spanm1
 
 
-@functools.lru_cache(maxsize=32)
+@_plain_cache(32)
 def _win_consts(ww: int, wh: int, dtype: torch.dtype, device):
     """Small per-call constants as tensors (an op with a Python scalar costs more than the op)."""
     def t(v, dt=dtype):
@@ -270,7 +305,7 @@ class _Level:
         self.Iview = Ip.as_strided((Ip.numel() - (wh + 2) * Wp - (ww + 2), wh + 3, ww + 3), (1, Wp, 1))
 
 
-@functools.lru_cache(maxsize=64)
+@_plain_cache(64)
 def _level_offsets(Wp: int, ww: int, wh: int, device):
     """``jstr`` (2, 1) = ``(1, Wp)`` (int64: exact for any image size) and the flat offsets of the
     iteration's ``(wh + 2, ww + 1)`` window (from the patch's top-left ``Wp + 1``) and of the
@@ -637,13 +672,13 @@ def _lk_impl(
     return out.t().reshape(B, N, 2), status.reshape(B, N), overflow
 
 
-@functools.lru_cache(maxsize=64)
+@_plain_cache(64)
 def _lane_index(B: int, N: int, device) -> torch.Tensor:
     """``(B N,)`` int64: the stream of each lane (cached: no per-call upload, no host sync)."""
     return torch.arange(B, device=device).repeat_interleave(N, output_size=B * N)
 
 
-@functools.lru_cache(maxsize=64)
+@_plain_cache(64)
 def _static_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
     """Per level-size constants of the static path's fixed-point iterations (cached).
 
@@ -664,7 +699,7 @@ def _static_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device)
     return grid, flag.unsqueeze(-1)
 
 
-@functools.lru_cache(maxsize=32)
+@_plain_cache(32)
 def _static_consts(device):
     """OpenCV's bilinear weights as one ``addcmul`` + one product (see :func:`_fixed_weights`):
     ``T = off + frac * sgn`` ``(2: x/y, m, 5)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10, 2^14,
@@ -1042,7 +1077,29 @@ def track_lk(
         status False (OpenCV: 0) and holds its ``pts`` (OpenCV: the NaN guess). Gradients flow to
         ``pts``, ``init_pts`` and float images (through the pyramid) via unrolled iterations; the
         backward check is discrete (no gradient). The values do not depend on whether gradients are recorded.
+
+    ``torch.func``: ``vmap`` over an outer batch (``(V, B, ...)`` inputs, any of them shared with
+    ``in_dims=None``) gives the per-``v`` calls' results bit for bit; ``grad``, ``vjp``, ``jacrev``,
+    ``jvp``, ``jacfwd``, ``hessian`` and forward-AD dual tensors work in both grad modes (and
+    compose with that ``vmap`` inside them). ``vmap`` over the primals of a derivative transform
+    (``vmap(grad(f))``) raises ``NotImplementedError``: take the derivative of the loss summed over
+    the batch (the streams are independent).
     """
+    if _transforms_active():  # torch.func / forward-AD dual tensors: see _track_lk_transformed
+        return _track_lk_transformed(prev, next, pts, valid, init_pts, dict(
+            win_size=win_size, max_level=max_level, max_iters=max_iters, eps=eps, min_eig_threshold=min_eig_threshold,
+            forward_backward=forward_backward, fb_threshold=fb_threshold, fb_max_level=fb_max_level,
+            fb_use_initial_flow=fb_use_initial_flow, fixed_point=fixed_point, early_exit=early_exit,
+            grad_mode=grad_mode))
+    return _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_iters, eps, min_eig_threshold,
+                          forward_backward, fb_threshold, fb_max_level, fb_use_initial_flow, fixed_point, early_exit,
+                          grad_mode)
+
+
+def _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_iters, eps, min_eig_threshold,
+                   forward_backward, fb_threshold, fb_max_level, fb_use_initial_flow, fixed_point, early_exit,
+                   grad_mode):
+    """:func:`track_lk`'s checks and calls (its arguments, in its order)."""
     check_points(pts, "pts")
     valid = default_valid(pts, valid, "valid")
     if init_pts is not None:
@@ -1112,7 +1169,16 @@ def _track_lk_impl(
 
     ``opts.grad_mode == "implicit"`` with a gradient to compute: the forward above without a graph,
     then :func:`_implicit_attach` (the same values).
+
+    Under a ``torch.func`` transform or a forward-AD dual level every kernel takes its reference
+    (out-of-place, differentiable) form (:func:`_tuning.reference_forms`: the same values): the
+    fast forms write in place / into ``out=`` buffers, which forward-mode AD does not support, and
+    they tell from ``requires_grad`` alone that no derivative is needed, which dual tensors do not
+    set.
     """
+    if _transforms_active() and _tuning.inplace_ok():
+        with _tuning.reference_forms():
+            return _track_lk_impl(prev, next, pts, valid, init_pts, opts, return_overflow, capped)
     if opts.grad_mode == "implicit" and _wants_grad(prev, next, pts, init_pts):
         return _track_lk_implicit(prev, next, pts, valid, init_pts, opts, return_overflow)
     top = _level_cap(prev, next, opts.max_level, opts.win_size)
@@ -1175,6 +1241,8 @@ def _forward_backward_impl(
     flag (see :func:`_track_lk_impl`). ``pts``, ``out``: ``(B, N, 2)``; ``status``: ``(B, N)``
     bool. A discrete test: no gradient.
     """
+    if _forward_ad_active():  # no_grad does not stop forward-mode AD: a discrete test, no tangents
+        prev, next = _detached(prev), _detached(next)
     with torch.no_grad():
         init = pts.detach() if fb_use_initial_flow else None
         res = _track_lk_impl(next, prev, out.detach(), status, init, dataclasses.replace(opts, max_level=fb_max_level),
@@ -1186,14 +1254,17 @@ def _forward_backward_impl(
 
 # ---------------------------------------------------------------------- implicit gradients
 def _wants_grad(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, init: torch.Tensor | None) -> bool:
-    """A gradient is being recorded and some input of level 0 (or the points) needs one."""
+    """A gradient is being recorded and some input of level 0 (or the points) needs one, or
+    forward-mode AD is active (dual tensors do not set ``requires_grad``)."""
+    if _forward_ad_active():
+        return True
     if not torch.is_grad_enabled():
         return False
     return pts.requires_grad or prev.levels[0].requires_grad or nxt.levels[0].requires_grad or (
         init is not None and init.requires_grad)
 
 
-@functools.lru_cache(maxsize=32)
+@_plain_cache(32)
 def _patch_offsets(Wp: int, ww: int, wh: int, device) -> torch.Tensor:
     """Flat offsets ``(wh + 1, ww + 2)`` of the bilinear patch of a window whose origin ``u`` is
     addressed as in :class:`_Level` (padded rows/columns start at ``u + 1``)."""
@@ -1329,10 +1400,186 @@ def _track_lk_implicit(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, valid: to
     so the same values), then :func:`_implicit_attach` on the lanes with status True that did not
     hit level 0's iteration budget."""
     capped: list = []
+    P, Q = prev, nxt
+    if _forward_ad_active():  # no_grad does not stop forward-mode AD: run the forward on plain levels
+        P, Q = _detached(prev), _detached(nxt)
     with torch.no_grad():
-        res = _track_lk_impl(prev, nxt, pts.detach(), valid, None if init is None else init.detach(),
+        res = _track_lk_impl(P, Q, pts.detach(), valid, None if init is None else init.detach(),
                              dataclasses.replace(opts, grad_mode="unrolled"), return_overflow, capped)
     out, status = res[0], res[1]
     cap = capped[0].view(status.shape) if capped else torch.zeros_like(status)
     out, _ = _implicit_attach(prev, nxt, pts, out, status & ~cap, opts)
     return (out, status) + tuple(res[2:])
+
+
+# ---------------------------------------------------------------------- torch.func
+# torch.func (vmap, grad, vjp, jacrev, jvp, jacfwd, hessian) and forward-AD dual tensors. The
+# private functorch helpers used here (_unwrap_batched, _add_batch_dim, peek_interpreter_stack,
+# pop/push_dynamic_layer_stack, the Python interpreters and their lower()) are those torch's own
+# autograd.Function vmap rule is built on (in torch since 2.0/2.1; get_interpreter_stack is
+# optional: without it forward mode is assumed possible under any transform). Tested on 2.13.
+_fwad = torch.autograd.forward_ad
+
+
+_transforms_active = _tuning.transforms_active
+
+
+def _forward_ad_active() -> bool:
+    """Forward-mode AD may be recording: a forward-AD dual level, or a ``torch.func.jvp`` (``jacfwd``,
+    ``hessian``) level on the functorch stack. Dual tensors do not set ``requires_grad``, and
+    ``torch.no_grad`` does not stop forward-mode AD."""
+    if torch.compiler.is_compiling():
+        return False
+    if _fwad._current_level >= 0:
+        return True
+    if torch._C._functorch.peek_interpreter_stack() is None:
+        return False
+    stack = getattr(torch._C._functorch, "get_interpreter_stack", lambda: None)()
+    if stack is None:  # cannot tell (older torch): assume it may
+        return True
+    jvp = torch._C._functorch.TransformType.Jvp
+    return any(i.key() == jvp for i in stack)
+
+
+def _detached(p: Pyramid) -> Pyramid:
+    """``p`` with detached levels (and cached padded levels): no gradient, no tangent."""
+    out = Pyramid([t.detach() for t in p.levels], None, p.rounded)
+    out._padded = {k: v.detach() for k, v in p._padded.items()}
+    return out
+
+
+def _batched_inside(x) -> bool:
+    """``x`` (tensor or pyramid) holds a tensor batched by some vmap level below its outer wrapper."""
+    F = torch._C._functorch
+    for t in (x.levels if isinstance(x, Pyramid) else (x,)):
+        while isinstance(t, torch.Tensor) and F.is_functorch_wrapped_tensor(t):
+            if F.is_batchedtensor(t):
+                return True
+            t = F.get_unwrapped(t)
+    return False
+
+
+def _track_lk_transformed(prev, next, pts, valid, init_pts, kw: dict):
+    """:func:`track_lk` under ``torch.func`` transforms or forward-AD dual tensors.
+
+    * ``vmap`` (the innermost transform): the LK's streams and points are independent, so the
+      vmapped dimension is folded into the call instead of batching its ops (the early-exit path
+      sizes its work by host syncs and ``nonzero``, which vmap cannot batch). The arguments are
+      unwrapped at the vmap level and the LK runs one level lower on the folded tensors: into the
+      batch (``(V, B, ...) -> (V B, ...)``) when an image is vmapped (unvmapped images are
+      repeated), else into the points (``(V, B, N, 2) -> (B, V N, 2)``: shared images, neither
+      copied nor rebuilt); the results are ``(V, B, N, 2)`` / ``(V, B, N)`` re-wrapped at the level.
+      The values are those of one call per ``v`` bit for bit (every lane is computed by the same
+      per-lane code whatever the lane set). Nested vmaps fold level by level; an outer ``grad`` /
+      ``jvp`` sees the folded call's ops.
+    * otherwise (``grad``, ``vjp``, ``jvp``, ``jacfwd``, dual tensors): the checked call with every
+      kernel in its reference form (see :func:`_track_lk_impl`); with ``grad_mode="implicit"`` the
+      forward runs on detached levels and the implicit gradient is attached whenever forward-mode
+      AD is active. A given :class:`Pyramid`'s padded-level cache is not written to (a copy is).
+    * a vmap *outside* a ``grad``/``jvp``/``vjp`` with vmapped primals (``vmap(grad(f))``,
+      ``vmap(jvp(f))``, per-sample derivatives) cannot be folded (the derivative transform's
+      wrappers hold the batched tensors): ``NotImplementedError``. Since the streams are
+      independent, the derivative of the summed loss w.r.t. the batched inputs gives the
+      per-stream derivatives.
+    """
+    from torch._functorch.pyfunctorch import retrieve_current_functorch_interpreter
+
+    F = torch._C._functorch
+    args = (prev, next, pts, valid, init_pts)
+    interp = retrieve_current_functorch_interpreter() if F.peek_interpreter_stack() is not None else None
+    if interp is not None and interp.key() == F.TransformType.Vmap:
+        level = interp.level()
+        un = [_unwrap_at(x, level) for x in args]
+        if not any(b for _, b in un):
+            with interp.lower():  # nothing batched at this level: an outer level's business
+                return _call(*(x for x, _ in un), kw)
+        folded, unfold = _fold(un)
+        with interp.lower():
+            out, status = _call(*folded, kw)
+        return F._add_batch_dim(unfold(out), 0, level), F._add_batch_dim(unfold(status), 0, level)
+    if interp is not None and any(_batched_inside(x) for x in args if x is not None):
+        raise NotImplementedError(
+            "track_lk: vmap over the primals of a derivative transform (vmap(grad(f)), vmap(jvp(f)), "
+            "vmap(vjp(f))) is not supported: the early-exit LK's nonzero/host syncs cannot be batched "
+            "inside the derivative's wrappers. Put vmap inside the derivative (grad(vmap(f))), or take the "
+            "derivative of the loss summed over the batch: the streams are independent.")
+    # a given pyramid's padded-level cache is read, not written: entries built here would be
+    # wrapped at this transform's level and outlive it
+    args = tuple(_cache_copy(x) if isinstance(x, Pyramid) else x for x in args)
+    with _tuning.reference_forms():
+        return _track_lk_door(*args, **kw)
+
+
+def _cache_copy(p: Pyramid) -> Pyramid:
+    """``p`` with a private copy of its padded-level cache (the same level tensors)."""
+    out = Pyramid(p.levels, p.grads, p.rounded)
+    out._padded = dict(p._padded)
+    return out
+
+
+def _call(prev, next, pts, valid, init_pts, kw: dict):
+    """:func:`track_lk` (the door again: the next transform level is handled there)."""
+    return track_lk(prev, next, pts, valid, init_pts=init_pts, **kw)
+
+
+def _unwrap_at(x, level: int):
+    """``x`` (a tensor, a pyramid or None) unwrapped at vmap ``level``: ``(value, batched)``, the
+    batch dimension of a batched tensor moved to 0 (``(V, ...)``; a pyramid's unbatched levels are
+    expanded to match)."""
+    F = torch._C._functorch
+    if isinstance(x, Pyramid):
+        levels = [_unwrap_at(t, level) for t in x.levels]
+        if not any(b for _, b in levels):
+            return x, False
+        V = next(t.shape[0] for t, b in levels if b)
+        lv = [t if b else t.unsqueeze(0).expand(V, *t.shape) for t, b in levels]
+        return Pyramid(lv, None, x.rounded), True
+    if not isinstance(x, torch.Tensor):
+        return x, False
+    t, bdim = F._unwrap_batched(x, level)
+    if bdim is None:
+        return t, False
+    return t.movedim(bdim, 0), True
+
+
+def _fold(un):
+    """Fold the vmapped dimension of ``(prev, next, pts, valid, init_pts)`` (each ``(value,
+    batched)``, see :func:`_unwrap_at`) into the batch (an image is batched) or into the points;
+    returns the folded arguments and the map of an output ``(V B, N, ...)`` / ``(B, V N, ...)``
+    back to ``(V, B, N, ...)``."""
+    V = next(_vsize(x) for x, b in un if b)
+    into_batch = un[0][1] or un[1][1]
+
+    def rep(x, b):  # an unbatched argument repeated along a new dim 0 of size V (a view)
+        return x if b else x.unsqueeze(0).expand(V, *x.shape)
+
+    out = []
+    for i, (x, b) in enumerate(un):
+        if x is None:
+            out.append(None)
+        elif i < 2:  # images / pyramids: folded only into the batch
+            if not into_batch:
+                out.append(x)
+            elif isinstance(x, Pyramid):
+                lv = x.levels if b else [t.unsqueeze(0).expand(V, *t.shape) for t in x.levels]
+                out.append(Pyramid([t.flatten(0, 1) for t in lv], None, x.rounded))
+            else:
+                out.append(rep(x, b).flatten(0, 1))
+        else:  # pts (V, B, N, 2), valid (V, B, N), init_pts (V, B, N, 2)
+            x = rep(x, b)
+            out.append(x.flatten(0, 1) if into_batch else x.movedim(0, 1).flatten(1, 2))
+    if into_batch:
+        B = out[2].shape[0] // V
+
+        def unfold(y):
+            return y.unflatten(0, (V, B))
+    else:
+        N = out[2].shape[1] // V
+
+        def unfold(y):
+            return y.unflatten(1, (V, N)).movedim(1, 0)
+    return out, unfold
+
+
+def _vsize(x) -> int:
+    return x.levels[0].shape[0] if isinstance(x, Pyramid) else x.shape[0]

@@ -231,7 +231,9 @@ def build_pyramid(
             ``buildOpticalFlowPyramid(withDerivatives=True)``; the LK does not need them).
         round_levels: round every level to the nearest integer (half up) before down-sampling the
             next one, exactly as OpenCV does for 8-bit images. Default: True for uint8 input, False
-            for float input (keeps the pyramid differentiable w.r.t. the image).
+            for float input (the pyramid of the float image). With a float image that requires a
+            gradient the rounding is straight-through (value rounded, gradient of the unrounded
+            level), as the differentiable tracker's 8-bit pyramid.
 
     Returns:
         :class:`Pyramid` with float levels (float32 for uint8 input, the input dtype otherwise).
@@ -278,7 +280,10 @@ def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool,
         level = _pyr_down_impl(level)
         if round_levels:
             # OpenCV: (sum + 128) >> 8, i.e. round half up; values are exact multiples of 1/256.
-            level = level.add_(0.5).floor_() if _tuning.inplace_ok(level) else torch.floor(level + 0.5)
+            if _tuning.inplace_ok(level):
+                level = level.add_(0.5).floor_()
+            else:  # straight through the rounding (floor's gradient is 0 everywhere), the same value
+                level = _tuning.straight_through(level, torch.floor(level + 0.5))
         levels.append(level)
     grads = [_scharr_impl(t) for t in levels] if with_gradients else None
     return Pyramid(levels, grads, round_levels)

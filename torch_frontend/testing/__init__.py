@@ -9,7 +9,9 @@ your own code (or a modified kernel) the same way.
   drifting VIO poses (``render_loop_sequence``, ``SyntheticSequence``; ``make_keyframes`` hands its
   keyframes over as a VIO would): the pose graph's test bed and ``torch-frontend demo --loop``.
 * ``flight``: a camera flying over a real photo with the exact homographies
-  (``synthetic_flight``): the tracker's sub-pixel ground truth.
+  (``synthetic_flight``, ``fly_over`` / ``Flight``): the tracker's sub-pixel ground truth; and the
+  image degradations of notebook 05 (``Degradation``, ``degrade``: blur, gamma, exposure,
+  vignetting, noise).
 * ``two_view``: two-view scenes with planted outliers and exact F (``planted_scenes``): the F-RANSAC
   test bed.
 * ``dispatch_count``: ``OpCounter``, the kernels, views and host syncs of any tensor code as a GPU
@@ -35,6 +37,10 @@ _EXPORTS = {
     "make_room": "synthetic",
     "render_loop_sequence": "synthetic",
     "synthetic_flight": "flight",
+    "fly_over": "flight",
+    "Flight": "flight",
+    "Degradation": "flight",
+    "degrade": "flight",
     "planted_scenes": "two_view",
     "line_distances": "two_view",
     "OpCounter": "dispatch_count",

@@ -116,6 +116,16 @@ class FeatureTracker:
             an int, or a tuple per level, level 0 first). Each iteration is ~21 launches per level
             whatever B, so e.g. ``(16, 14, 12, 10)`` saves ~1,400 launches per step; a point that
             would need more iterations sets ``frame.overflow`` for its stream.
+        differentiable: keep float images float through the step (the learned-VIO path): ``uv``,
+            ``xy`` and ``velocity`` of tracked features carry gradients to the images of this and
+            earlier steps (through the state) and to the cameras' parameters (after
+            ``tracker.camera.requires_grad_()``). CLAHE's gradient is its LUT's local slope and the
+            8-bit roundings are straight-through; detection, status, RANSAC and setMask stay
+            discrete masks. The outputs equal the 8-bit path's bit for bit. See
+            ``docs/differentiability.md``.
+        grad_mode: differentiable only: LK's gradient, ``"implicit"`` (default: implicit-function
+            gradient of the converged level-0 solution, zero for lost lanes, memory independent of
+            the iterations) or ``"unrolled"`` (through every iteration).
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
@@ -136,6 +146,8 @@ class FeatureTracker:
         seed: int = 0,
         capturable: Optional[bool] = None,
         lk_iter_budget=None,
+        differentiable: bool = False,
+        grad_mode: str = "implicit",
     ):
         if not isinstance(config, TrackerConfig):
             config = load_config(config)
@@ -150,9 +162,11 @@ class FeatureTracker:
         if capturable is None:
             capturable = self.device.type != "cpu"
         self.capturable = bool(capturable)
+        self.differentiable = bool(differentiable)
         try:
             params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask,
-                                               capturable=self.capturable, lk_iter_budget=lk_iter_budget)
+                                               capturable=self.capturable, lk_iter_budget=lk_iter_budget,
+                                               differentiable=self.differentiable, lk_grad_mode=grad_mode)
         except ValueError as exc:
             raise ValueError(f"config {config.path}: {exc}") from None
         self.params = params.to(self.device)

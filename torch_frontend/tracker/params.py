@@ -50,6 +50,15 @@ class TrackerParams:
             early exits, every stage runs for every stream under masks, and the kernel count does
             not depend on B. False: the eager path tuned for the CPU (early exit, compaction,
             stream groups). Both give identical results wherever ``frame.overflow`` is False.
+        differentiable: float images stay float through the step so that ``uv``, ``xy`` and
+            ``velocity`` of tracked features carry gradients to the images (and to the cameras'
+            parameters): the door rounds and clamps as cv_bridge but straight through, CLAHE's
+            gradient is its LUT's local slope (straight-through), the pyramid's 8-bit rounding is
+            straight-through, LK's gradient follows ``lk_grad_mode``; detection, status, RANSAC and
+            setMask stay discrete masks. The values are the 8-bit path's, bit for bit.
+        lk_grad_mode: differentiable only: LK's ``grad_mode``, ``"implicit"`` (default: the
+            implicit-function gradient of the converged level-0 solution, memory independent of
+            the iterations, zero for lost lanes) or ``"unrolled"`` (every iteration, as computed).
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -69,6 +78,8 @@ class TrackerParams:
     camera1: Any = dataclasses.field(default=None, compare=False, repr=False)
     fisheye_mask: Optional[Any] = dataclasses.field(default=None, compare=False, repr=False)
     capturable: bool = False
+    differentiable: bool = False
+    lk_grad_mode: str = "implicit"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream
@@ -145,7 +156,7 @@ class TrackerParams:
         try:
             self.lk_options, self.lk_short_options  # noqa: B018
         except ConfigError as exc:  # name the tracker's field, not LKOptions'
-            raise ConfigError(f"lk_iter_budget / lk_*: {exc}") from None
+            raise ConfigError(f"lk_iter_budget / lk_grad_mode / lk_*: {exc}") from None
 
     def check_image_size(self, height: int, width: int) -> None:
         """The kernels' size checks for ``height x width`` images (the step calls the kernels
@@ -193,7 +204,8 @@ class TrackerParams:
         """VINS's LK call (spec §2), OpenCV's fixed point (the tracker's pyramids are 8-bit)."""
         return LKOptions(win_size=(self.lk_win_size, self.lk_win_size), max_level=self.lk_max_level,
                          max_iters=self.lk_max_iters, eps=self.lk_eps, min_eig_threshold=self.lk_min_eig_threshold,
-                         fixed_point=True, early_exit=not self.capturable, iter_budget=self.lk_iter_budget)
+                         fixed_point=True, early_exit=not self.capturable, iter_budget=self.lk_iter_budget,
+                         grad_mode=self.lk_grad_mode if self.differentiable else "unrolled")
 
     @functools.cached_property
     def lk_short_options(self) -> LKOptions:

@@ -23,10 +23,11 @@ from typing import NamedTuple, Optional, Tuple
 
 import torch
 
+from .. import _tuning
 from .._checks import gather_slots
 from .._compiler import constant_result
 from ..corners import _good_features_impl
-from ..equalize import _clahe_impl
+from ..equalize import _clahe_impl, _clahe_straight_through
 from ..lk import _forward_backward_impl, _track_lk_impl
 from ..masks import _distance_mask_impl
 from ..pyramid import Pyramid, _build_pyramid_impl
@@ -56,10 +57,15 @@ def merge_overflow(*flags: Optional[Tensor]) -> Optional[Tensor]:
 
 
 def equalize(img: Tensor, params: TrackerParams) -> Tensor:
-    """CLAHE (``createCLAHE(3.0, 8x8)``, spec §5.3) when the mode equalises, else the image."""
+    """CLAHE (``createCLAHE(3.0, 8x8)``, spec §5.3) when the mode equalises, else the image.
+    ``params.differentiable``: float32 in and out, the same values, the gradient of the LUT's local
+    slope (straight-through, ``equalize._clahe_straight_through``)."""
     if not params.uses_clahe:
         return img
     gx, gy = params.clahe_tile_grid
+    if params.differentiable:
+        return _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy,
+                                       capturable=params.capturable).unsqueeze(1)
     if params.capturable:
         return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=True).unsqueeze(1)
     return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy).unsqueeze(1)
@@ -67,7 +73,8 @@ def equalize(img: Tensor, params: TrackerParams) -> Tensor:
 
 def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
     """The LK pyramid of an 8-bit image: levels rounded as OpenCV's 8-bit ``pyrDown`` (LK fidelity);
-    no full-image derivatives (the LK takes them from the windows it reads)."""
+    no full-image derivatives (the LK takes them from the windows it reads). A float32 image of
+    the differentiable step gives the same levels, its rounding straight-through."""
     return _build_pyramid_impl(img, params.lk_max_level, with_gradients=False, round_levels=True)
 
 
@@ -205,6 +212,21 @@ def reject_with_f(table: FeatureTable, publish: Tensor, camera, params: TrackerP
     """
     if not params.capturable and not bool(publish.any()):  # host sync: nobody publishes (every other frame)
         return table, None
+    # RANSAC's result is a mask: no graph through the lift and the solver (the compaction below
+    # keeps the features' gradients)
+    if params.differentiable:  # no_grad does not stop forward AD: the points are detached as well
+        with torch.no_grad():
+            res = _ransac(table.replace(pts=table.pts.detach(), prev_pts=table.prev_pts.detach()), publish, camera,
+                          params, stage)
+    else:
+        res = _ransac(table, publish, camera, params, stage)
+    apply = (publish & res.ok).unsqueeze(-1)
+    table = table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
+    return table, (res.overflow & publish if params.capturable else None)
+
+
+def _ransac(table: FeatureTable, publish: Tensor, camera, params: TrackerParams, stage):
+    """rejectWithF's F-RANSAC on the ``publish`` streams (a ``FundamentalResult``)."""
     fv = table.valid & publish.unsqueeze(-1)
     # both point sets lifted in one call (one set of kernels)
     p12 = virtual_pinhole(camera, torch.cat((table.prev_pts, table.pts), 1), torch.cat((fv, fv), 1), params)
@@ -215,10 +237,7 @@ def reject_with_f(table: FeatureTable, publish: Tensor, camera, params: TrackerP
     with stage("ransac"):
         args = (p1, p2, fv, threshold, confidence, params.ransac_max_iters, _ransac_states(table.batch, params.seed),
                 None)
-        res = _find_fundamental_impl(*args, capturable=params.capturable, method=params.F_method)
-    apply = (publish & res.ok).unsqueeze(-1)
-    table = table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
-    return table, (res.overflow & publish if params.capturable else None)
+        return _find_fundamental_impl(*args, capturable=params.capturable, method=params.F_method)
 
 
 @constant_result
@@ -279,7 +298,7 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
     valid, cnt = _rows_of(table, rows, table.valid), _rows_of(table, rows, table.track_cnt)
     key = torch.where(valid, cnt, torch.full_like(cnt, -1))
     order = torch.sort(-key, dim=1, stable=True).indices
-    pts_s = torch.gather(_rows_of(table, rows, table.pts), 1, order.unsqueeze(-1).expand(-1, -1, 2))
+    pts_s = torch.gather(_rows_of(table, rows, _mask_points(table)), 1, order.unsqueeze(-1).expand(-1, -1, 2))
     valid_s, cnt_s = torch.gather(valid, 1, order), torch.gather(cnt, 1, order)
     n = rows.numel()
     if base_mask is None:
@@ -299,6 +318,12 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
     return table.permute(order).compact(keep), Detection(rows, mask), None
 
 
+def _mask_points(table: FeatureTable) -> Tensor:
+    """The pixels setMask rounds into its mask: a discrete choice, so without a graph (the table's
+    permutation keeps the features' gradients)."""
+    return table.pts.detach() if _tuning.derivative_wanted(table.pts) else table.pts
+
+
 def _setmask_order(table: FeatureTable) -> Tensor:
     """setMask's visiting order ``(B, K)``: track count descending, ties by slot (stable), empty last."""
     key = torch.where(table.valid, table.track_cnt, torch.full_like(table.track_cnt, -1))
@@ -312,7 +337,7 @@ def _set_mask_static(table: FeatureTable, detect: Tensor, params: TrackerParams,
     B, K = table.valid.shape
     dev = table.valid.device
     order = _setmask_order(table)
-    pts_s, cnt_s, valid_s = (gather_slots(x, order) for x in (table.pts, table.track_cnt, table.valid))
+    pts_s, cnt_s, valid_s = (gather_slots(x, order) for x in (_mask_points(table), table.track_cnt, table.valid))
     if base_mask is None:
         mask = torch.full((B, height, width), 255, dtype=torch.uint8, device=dev)
     else:
@@ -339,6 +364,8 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
     (the fixed candidate block / rounds too small; None on the default path)."""
     rows = detection.rows
     B = table.batch
+    if _tuning.derivative_wanted(img):  # corners are a discrete choice: detected pixels carry no gradient
+        img = img.detach()
     if detection.detect is not None:  # capturable: every stream, K = max_cnt outputs, masked
         n_max = table.capacity - table.valid.sum(1)
         with stage("detection"):

@@ -95,6 +95,16 @@ class TrackerState:
     def replace(self, **fields) -> TrackerState:
         return dataclasses.replace(self, **fields)
 
+    def detach(self) -> TrackerState:
+        """The same state cut from the autograd graph (truncated BPTT: a differentiable tracker's
+        state carries the graph of every step since the last ``detach``)."""
+        return pytree.tree_map(lambda x: x.detach() if isinstance(x, torch.Tensor) else x, self)
+
+    @property
+    def requires_grad(self) -> bool:
+        """Some tensor of the state carries an autograd graph (a differentiable tracker's)."""
+        return any(isinstance(x, torch.Tensor) and x.requires_grad for x in pytree.tree_leaves(self))
+
 
 def _register_dataclass(cls) -> None:
     """Register a dataclass as a pytree node whose children are its fields, in order."""

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Optional, Tuple
 
 import torch
 
+from .. import _tuning
 from .._checks import as_image_batch, check_shape
 from .clock import ClockDecision, count_published, mono_clock
 from .frame import FeatureFrame
@@ -75,13 +77,24 @@ def _check_float_values(img: Tensor, rounded: Tensor, name: str) -> None:
                          f"this library expects grey levels 0..255 (multiply by 255)")
 
 
+def _is_vmapped(x) -> bool:
+    """``x`` is a tensor being batched by ``torch.func.vmap`` (False on a torch without functorch)."""
+    probe = getattr(getattr(torch._C, "_functorch", None), "is_batchedtensor", None)
+    return isinstance(x, torch.Tensor) and probe is not None and bool(probe(x))
+
+
 def check_images(images, params: TrackerParams, batch: int, device, name: str = "images",
                  size: Optional[Tuple[int, int]] = None) -> Tensor:
-    """``images`` as contiguous ``(B, 1, H, W)`` uint8 on ``device``. Mono: ``H, W`` must be the
+    """``images`` as contiguous ``(B, 1, H, W)`` uint8 on ``device`` (``params.differentiable``: float32
+    with the same values, straight-through gradients: :func:`_straight_through_8bit`). Mono: ``H, W`` must be the
     config's; fusion tracks each image at its real size as VINS-Fusion (spec §6.2; the config's
     size is the estimator's), any size the kernels can work on, but ``size`` (the previous image's
     ``(H, W)``) when given: LK needs both images of a pair at one size. Float input: NaN pixels and
     0..1 images raise ``ValueError`` (:func:`_check_float_values`)."""
+    if _is_vmapped(images):
+        raise ValueError(f"{name}: torch.func.vmap of a tracker step is not supported (its CPU path has host "
+                         f"syncs and data-dependent shapes that vmap cannot batch); the step is batched "
+                         f"already: put the outer batch into the streams, FeatureTracker(cfg, num_streams=V * B)")
     img = as_image_batch(torch.as_tensor(images), name)
     if img.shape[0] != batch:
         raise ValueError(f"{name}: expected {batch} streams (B, 1, H, W), got {tuple(img.shape)}")
@@ -94,6 +107,12 @@ def check_images(images, params: TrackerParams, batch: int, device, name: str = 
     if params.mode != "mono":
         params.check_image_size(*hw)
     img = img.to(device)
+    if params.differentiable:
+        return _straight_through_8bit(img, name)
+    if img.requires_grad:
+        warnings.warn(f"{name}: the images require a gradient, but this tracker is not differentiable: the "
+                      f"8-bit path rounds them and cuts the graph (use FeatureTracker(..., differentiable=True))",
+                      UserWarning, stacklevel=4)
     if img.dtype != torch.uint8:
         # VINS works on 8-bit images; float input is rounded and clamped the way cv_bridge would.
         rounded = img.round()
@@ -101,6 +120,23 @@ def check_images(images, params: TrackerParams, batch: int, device, name: str = 
         img = rounded.clamp(0, 255).to(torch.uint8)
     # the kernels view images as flat rows: a transposed or expanded image is copied (no-op otherwise)
     return img.contiguous()
+
+
+def _straight_through_8bit(img: Tensor, name: str) -> Tensor:
+    """The differentiable tracker's door: ``(B, 1, H, W)`` float32 holding the 8-bit path's grey
+    levels exactly (uint8 as is; float rounded half to even and clamped to 0..255 as cv_bridge), with
+    the gradient of the clamp alone (straight through the rounding: the identity inside 0..255).
+
+    float32 because the 8-bit path's pyramid is float32; the cast is differentiable, so a float64
+    image gets its gradient (``_tuning.straight_through``: the value is the rounded image bit for bit)."""
+    if img.dtype == torch.uint8:
+        return img.to(torch.float32).contiguous()
+    rounded = img.detach().round()
+    _check_float_values(img.detach(), rounded, name)
+    hard = rounded.clamp(0, 255).to(torch.float32)
+    if not _tuning.derivative_wanted(img):
+        return hard.contiguous()
+    return _tuning.straight_through(img.clamp(0, 255).to(torch.float32), hard).contiguous()
 
 
 def _narrow_float(timestamps) -> Optional[torch.dtype]:
@@ -188,6 +224,15 @@ def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams
               active: Tensor, stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
     """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
     bool, all on the state's device)."""
+    if params.differentiable and _tuning.transforms_active():
+        # torch.func / forward AD: every kernel in its reference (out-of-place) form, whose choice
+        # of form does not read requires_grad (dual and wrapped tensors leave it False)
+        with _tuning.reference_forms():
+            return _step_mode(state, img, t, params, right, active, stage)
+    return _step_mode(state, img, t, params, right, active, stage)
+
+
+def _step_mode(state, img, t, params, right, active, stage):
     if params.mode == "mono":
         return _mono(state, img, t, params, active, stage)
     return _fusion(state, img, t, right, params, active, stage)
@@ -239,8 +284,13 @@ def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, 
     f = new.features
     if overflow is None:
         overflow = torch.zeros_like(tracked)
+    uv, xy = f.pts.clone(), f.un_pts.clone()
+    if _tuning.derivative_wanted(uv, xy):
+        # empty slots hold stale values of lost features: same values, no gradient through them
+        keep = f.valid.unsqueeze(-1)
+        uv, xy = torch.where(keep, uv, uv.detach()), torch.where(keep, xy, xy.detach())
     return FeatureFrame(
-        ids=f.ids.clone(), uv=f.pts.clone(), xy=f.un_pts.clone(),
+        ids=f.ids.clone(), uv=uv, xy=xy,
         velocity=torch.where((tracked.unsqueeze(-1) & f.valid).unsqueeze(-1), velocity, torch.zeros_like(velocity)),
         track_count=f.track_cnt.clone(), valid=valid, present=present, published=decision.publish, sent=sent,
         restarted=decision.restarted, tracked=decision.tracked, timestamps=t, overflow=overflow, **extra)

@@ -1,0 +1,131 @@
+"""``nn.Module`` wrappers for training loops: :class:`LucasKanade` (the LK kernel with its settings)
+and :class:`TrackerModule` (the pure tracker step, its cameras as sub-modules).
+
+Convention:
+    Modules hold settings and (for the tracker) the camera models; they hold no per-sequence state:
+    the tracker's state goes in and out of ``forward`` (``state, frame = module(state, images, t)``),
+    so BPTT over frames, ``torch.utils.checkpoint`` and ``torch.func`` see a pure function. ``.to()``,
+    ``.double()``, ``state_dict()`` and ``parameters()`` behave as for any module; the cameras'
+    parameters are frozen until ``module.camera.requires_grad_()``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Union
+
+import torch
+from torch import nn
+
+from ..lk import GRAD_MODES, track_lk
+from ..tracker import FeatureTracker
+from .status import BORDER_TEMPERATURE, PHOTO_SIGMA, soft_status
+
+STATUS_MODES = ("hard", "soft", "straight_through")
+
+
+class LucasKanade(nn.Module):
+    """``cv2.calcOpticalFlowPyrLK`` as a module: :func:`~torch_frontend.track_lk` with fixed settings.
+
+    Args:
+        win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, early_exit: as
+            :func:`~torch_frontend.track_lk` (OpenCV's defaults, VINS's window).
+        grad_mode: ``"implicit"`` (default here: the training setting; memory independent of the
+            iterations, zero gradient for lost lanes) or ``"unrolled"``.
+        status: ``"hard"`` (LK's bool status), ``"soft"`` or ``"straight_through"`` (a float
+            confidence, :func:`~torch_frontend.learn.soft_status`).
+        sigma, temperature, border: the soft status' settings.
+
+    ``forward(prev, next, pts, valid=None, init_pts=None) -> (next_pts (B, N, 2), status (B, N))``;
+    images ``(B, 1, H, W)`` (uint8 or float 0..255) or pyramids, ``pts`` pixels in ``prev``.
+    """
+
+    def __init__(self, win_size: Union[int, tuple] = 21, max_level: int = 3, max_iters: int = 30, eps: float = 0.01,
+                 min_eig_threshold: float = 1e-4, *, fixed_point: Optional[bool] = None, early_exit: bool = True,
+                 grad_mode: str = "implicit", status: str = "hard", sigma: float = PHOTO_SIGMA,
+                 temperature: float = BORDER_TEMPERATURE, border: int = 1):
+        super().__init__()
+        if grad_mode not in GRAD_MODES:
+            raise ValueError(f"grad_mode: expected one of {GRAD_MODES}, got {grad_mode!r}")
+        if status not in STATUS_MODES:
+            raise ValueError(f"status: expected one of {STATUS_MODES}, got {status!r}")
+        self.win_size, self.max_level, self.max_iters, self.eps = win_size, int(max_level), int(max_iters), float(eps)
+        self.min_eig_threshold, self.fixed_point, self.early_exit = float(min_eig_threshold), fixed_point, early_exit
+        self.grad_mode, self.status = grad_mode, status
+        self.sigma, self.temperature, self.border = float(sigma), float(temperature), int(border)
+
+    def forward(self, prev, next, pts: torch.Tensor, valid: Optional[torch.Tensor] = None,
+                init_pts: Optional[torch.Tensor] = None):
+        out, st = track_lk(prev, next, pts, valid, self.win_size, self.max_level, self.max_iters, self.eps,
+                           self.min_eig_threshold, init_pts, fixed_point=self.fixed_point, early_exit=self.early_exit,
+                           grad_mode=self.grad_mode)
+        if self.status == "hard":
+            return out, st
+        win = self.win_size if isinstance(self.win_size, int) else int(self.win_size[0])
+        return out, soft_status(prev, next, pts, out, st, win_size=win, sigma=self.sigma, border=self.border,
+                                temperature=self.temperature, mode=self.status)
+
+    def extra_repr(self) -> str:
+        return (f"win_size={self.win_size}, max_level={self.max_level}, max_iters={self.max_iters}, eps={self.eps}, "
+                f"grad_mode={self.grad_mode!r}, status={self.status!r}")
+
+
+class TrackerModule(nn.Module):
+    """The differentiable tracker step (``FeatureTracker(..., differentiable=True)``) as a module.
+
+    Args:
+        config: a ``TrackerConfig`` or the path of a VINS config YAML.
+        num_streams: B, the streams of each call.
+        mode, dtype, fisheye_mask, seed, capturable: as :class:`~torch_frontend.FeatureTracker`.
+        grad_mode: LK's gradient, ``"implicit"`` (default) or ``"unrolled"``.
+
+    ``forward(state, images, timestamps, right=None, active=None) -> (new_state, frame)`` is the
+    pure step: ``images (B, 1, H, W)`` float grey levels 0..255 (or uint8), ``timestamps (B,)``
+    float64 seconds; ``frame.uv``, ``frame.xy`` and ``frame.velocity`` carry gradients to the
+    images of this and earlier steps (through ``state``) and to ``camera``'s parameters once
+    ``module.camera.requires_grad_()``. ``initial_state()`` starts B streams;
+    ``state.detach()`` cuts the graph (truncated BPTT).
+
+    The camera models are sub-modules (``module.camera``, ``module.camera1`` for stereo), so
+    ``state_dict()``, ``parameters()`` and ``.to(device)`` see them; they stay float64 (camodocal's
+    double precision) whatever ``.float()`` / ``.half()`` asks. Make a new ``initial_state()``
+    after moving the module.
+    """
+
+    def __init__(self, config, num_streams: int = 1, *, mode: str = "mono", dtype: torch.dtype = torch.float32,
+                 fisheye_mask: Optional[torch.Tensor] = None, seed: int = 0, capturable: bool = False,
+                 grad_mode: str = "implicit", device: Union[str, torch.device] = "cpu"):
+        super().__init__()
+        tracker = FeatureTracker(config, num_streams, device=device, mode=mode, dtype=dtype,
+                                 fisheye_mask=fisheye_mask, seed=seed, capturable=capturable, differentiable=True,
+                                 grad_mode=grad_mode)
+        object.__setattr__(self, "tracker", tracker)  # a plain attribute: not a module, not in state_dict
+        self.camera = tracker.params.camera
+        self.camera1 = tracker.params.camera1  # None without a stereo camera (registered as absent)
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        # the cameras' parameters moved in place; the tracker's device, mask and (float64) cameras follow
+        device = next(self.camera.parameters()).device
+        t = self.tracker
+        t.device = device
+        t.params = t.params.to(device)
+        return self
+
+    @property
+    def num_streams(self) -> int:
+        return self.tracker.B
+
+    def initial_state(self):
+        """The state of B streams that have seen nothing, on the module's device."""
+        return self.tracker.initial_state()
+
+    def forward(self, state, images, timestamps, right=None, active=None):
+        return self.tracker.step(state, images, timestamps, right=right, active=active)
+
+    def extra_repr(self) -> str:
+        p = self.tracker.params
+        return (f"mode={p.mode!r}, num_streams={self.tracker.B}, max_cnt={p.max_cnt}, grad_mode={p.lk_grad_mode!r}, "
+                f"capturable={p.capturable}")
+
+
+__all__ = ["LucasKanade", "TrackerModule", "STATUS_MODES"]
