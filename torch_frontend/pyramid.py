@@ -188,14 +188,15 @@ class Pyramid:
         """Level ``level`` as ``dtype`` padded by ``pad_h`` rows / ``pad_w`` columns on each side with
         BORDER_REFLECT_101 (as ``buildOpticalFlowPyramid`` stores its levels), ``(B, 1, H + 2 pad_h,
         W + 2 pad_w)``. Cached on the pyramid unless the level needs a gradient (a copy padded under
-        ``torch.no_grad`` would otherwise cut the gradient of a later call)."""
+        ``torch.no_grad`` would otherwise cut the gradient of a later call), or under a ``torch.func`` /
+        forward-AD transform."""
         t = self.levels[level]
         dtype = t.dtype if dtype is None else dtype
         key = (level, pad_h, pad_w, dtype)
         out = self._padded.get(key)
         if out is None:
             out = pad_reflect101(t.to(dtype), pad_h, pad_w)
-            if not t.requires_grad:
+            if not _tuning.derivative_wanted(t):  # (dual / functorch-wrapped levels must not outlive their transform)
                 self._padded[key] = out
         return out
 
