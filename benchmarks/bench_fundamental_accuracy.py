@@ -63,7 +63,7 @@ sys.path.insert(0, str(REPO))
 
 import torch_frontend as tf  # noqa: E402
 from torch_frontend import ransac  # noqa: E402
-from torch_frontend.testing.flight import synthetic_flight  # noqa: E402
+from torch_frontend.testing.flight import reprojection_errors, synthetic_flight  # noqa: E402
 from torch_frontend.testing.two_view import line_distances  # noqa: E402
 from torch_frontend.testing.two_view import planted_scenes as two_view_scenes  # noqa: E402
 
@@ -295,17 +295,8 @@ def run_tracker(method, frames, cfg, Hs=None, dt=0.05):
                mean_track_length=float(np.mean(list(best.values()))), tracks=len(best), rejected_by_F=rejected[0],
                ms_per_frame=wall * 1e3 / len(frames))
     if Hs is not None:
-        birth, errs = {}, []
-        for k, f in enumerate(out):
-            pr = f.present[0].numpy()
-            for i, p in zip(f.ids[0].numpy()[pr].tolist(), f.uv[0].numpy()[pr].astype(np.float64)):
-                if i not in birth:
-                    birth[i] = (k, p)
-                    continue
-                k0, p0 = birth[i]
-                q = Hs[k] @ np.linalg.inv(Hs[k0]) @ np.array([p0[0], p0[1], 1.0])
-                errs.append(np.hypot(*(q[:2] / q[2] - p)))
-        e = np.asarray(errs)
+        e = reprojection_errors([(f.ids[0].numpy()[f.present[0].numpy()], f.uv[0].numpy()[f.present[0].numpy()])
+                                 for f in out], Hs)
         row.update(gt_err_median=float(np.median(e)), gt_err_p90=float(np.quantile(e, 0.9)), observations=len(e))
     return row
 

@@ -17,7 +17,7 @@ import torch
 
 import torch_frontend as tf
 from torch_frontend.testing import oracle as vins_oracle
-from torch_frontend.testing.flight import synthetic_flight
+from torch_frontend.testing.flight import reprojection_errors, synthetic_flight
 from torch_frontend.tracker import FeatureTracker
 
 from .conftest import REPO, TEST_DATA, load_gray, sample_frames
@@ -111,22 +111,10 @@ def test_mono_synthetic_flight_vs_oracle_and_truth():
     ours, theirs = _run_torch(cfg, seq), _run_oracle(cfg, seq)
     worst, frac, ml_o, ml_t, total = _compare_with_oracle(ours, theirs)
     # ground truth: a feature born at uv0 in frame k0 is at H_k H_k0^-1 uv0 in frame k
-    def reprojection_errors(observations):
-        birth, errs = {}, []
-        for k, (ids, uv) in enumerate(observations):
-            for i, p in zip(ids.tolist(), uv.astype(np.float64)):
-                if i not in birth:
-                    birth[i] = (k, p)
-                    continue
-                k0, p0 = birth[i]
-                q = Hs[k] @ np.linalg.inv(Hs[k0]) @ np.array([p0[0], p0[1], 1.0])
-                errs.append(np.hypot(*(q[:2] / q[2] - p)))
-        return np.array(errs)
-
     e_ours = reprojection_errors([(f.ids[0].numpy()[f.present[0].numpy()], f.uv[0].numpy()[f.present[0].numpy()])
-                                  for f in ours])
+                                  for f in ours], Hs)
     e_cv = reprojection_errors([(o["ids"], o["uv"]) if o["tracked"] else (np.zeros(0, int), np.zeros((0, 2)))
-                                for o in theirs])
+                                for o in theirs], Hs)
     med, med_cv = float(np.median(e_ours)), float(np.median(e_cv))
     print(f"synthetic: count diff max {worst:.3%}, matched {frac:.2%} of {total}, track length {ml_o:.2f} vs "
           f"{ml_t:.2f}, median reprojection error {med:.4f} px (OpenCV oracle {med_cv:.4f} px) over "

@@ -74,6 +74,28 @@ LEGACY_OUTPUTS = (
 # the recorder
 
 
+def run_counts(streams: int, frames: int, published: int, published_features: int, lengths, seconds: float,
+               skipped: List[Dict[str, Any]], track_images: int) -> Dict[str, Any]:
+    """The counts that open ``summary.json`` (one process, or the merge of a sharded run's inputs):
+    totals, means over published frames and tracks (``lengths``: track lengths, a numpy array), rates,
+    and the skipped frames (``skipped``: ``{"stream", "source", "reason"}`` dicts)."""
+    return {
+        "streams": int(streams),
+        "frames": frames,
+        "published": published,
+        "published_features": published_features,
+        "mean_features": float(published_features / published) if published else 0.0,
+        "tracks": int(lengths.size),
+        "mean_track_length": float(lengths.mean()) if lengths.size else 0.0,
+        "median_track_length": float(np.median(lengths)) if lengths.size else 0.0,
+        "seconds": round(float(seconds), 6),
+        "frames_per_second": float(frames / seconds) if seconds > 0 else 0.0,
+        "skipped_bad_frames": len(skipped),
+        "skipped": skipped,
+        "track_images": track_images,
+    }
+
+
 class RunRecorder:
     """Collect per-step results of B streams and write the outputs of a run.
 
@@ -212,22 +234,10 @@ class RunRecorder:
                 "published": int(self.published[b]),
                 "mean_features": float(np.mean(pub)) if pub else 0.0,
             })
-        s = {
-            "streams": self.B,
-            "frames": frames,
-            "published": published,
-            "published_features": int(cols_n),
-            "mean_features": float(cols_n / published) if published else 0.0,
-            "tracks": int(lengths.size),
-            "mean_track_length": float(lengths.mean()) if lengths.size else 0.0,
-            "median_track_length": float(np.median(lengths)) if lengths.size else 0.0,
-            "seconds": round(float(seconds), 6),
-            "frames_per_second": float(frames / seconds) if seconds > 0 else 0.0,
-            "skipped_bad_frames": len(skipped),
-            "skipped": [{"stream": int(b), "source": str(src), "reason": str(why)} for b, src, why in skipped],
-            "track_images": self.track_images,
-            "per_stream": per_stream,
-        }
+        s = run_counts(self.B, frames, published, int(cols_n), lengths, seconds,
+                       [{"stream": int(b), "source": str(src), "reason": str(why)} for b, src, why in skipped],
+                       self.track_images)
+        s["per_stream"] = per_stream
         if extra:
             s.update(extra)
         return s

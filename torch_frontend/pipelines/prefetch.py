@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError
-from ..io.multistream import Batch, lockstep, ns_to_seconds
+from ..io.multistream import Batch, MultiStream, lockstep, ns_to_seconds
 
 __all__ = ["FrameStream", "DEFAULT_PREFETCH"]
 
@@ -125,7 +125,7 @@ def _init_worker(_: int) -> None:
         pass
 
 
-class FrameStream:
+class FrameStream(MultiStream):
     """Iterate B ``io`` sequences together, decoding ahead (module docstring).
 
     Args:
@@ -140,13 +140,9 @@ class FrameStream:
 
     def __init__(self, sequences: Seq[Any], size: Optional[Tuple[int, int]] = None, max_steps: Optional[int] = None,
                  workers: int = 0, prefetch: int = DEFAULT_PREFETCH, pin_memory: bool = False):
-        if len(sequences) == 0:
-            raise DataError("no input sequence given")
         if workers < 0:
             raise ValueError(f"workers must be >= 0, got {workers}")
-        self.sequences = list(sequences)
-        self.size = None if size is None else (int(size[0]), int(size[1]))
-        self.max_steps = None if max_steps is None else int(max_steps)
+        super().__init__(sequences, size, max_steps)  # the sequences, size and step checks of MultiStream
         self.workers = int(workers)
         self.prefetch = max(1, int(prefetch))
         self.pin_memory = bool(pin_memory)
@@ -154,15 +150,6 @@ class FrameStream:
         self.wait_seconds = 0.0
         self._skipped: List[List[Tuple[str, str]]] = [[] for _ in self.sequences]
         self._pinned: List[torch.Tensor] = []
-
-    @property
-    def num_streams(self) -> int:
-        return len(self.sequences)
-
-    def __len__(self) -> int:
-        """Upper bound of the number of steps (as ``MultiStream``)."""
-        n = max(len(s) for s in self.sequences)
-        return n if self.max_steps is None else min(n, self.max_steps)
 
     @property
     def skipped(self) -> List[Tuple[int, str, str]]:
@@ -263,13 +250,3 @@ class FrameStream:
             close = getattr(rows, "close", None)
             if close is not None:
                 close()  # stops the DataLoader's workers now, not at garbage collection
-
-    def _check(self, frame) -> None:
-        h, w = frame.image.shape
-        if self.size is None:
-            self.size = (h, w)
-        elif (h, w) != self.size:
-            raise DataError(
-                f"{frame.source}: image size {w}x{h} differs from the expected {self.size[1]}x{self.size[0]} "
-                f"(the config's image_width x image_height)"
-            )

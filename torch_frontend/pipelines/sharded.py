@@ -209,6 +209,8 @@ def _merge_track(gathered, sources, cfg, opt, out: Path, job, seconds: float) ->
     """The merged ``summary.json`` (the one-process summary of all inputs) and ``index.json``."""
     import numpy as np
 
+    from ..outputs import run_counts
+
     per: List[Dict[str, Any]] = []  # per input, in input order (ranks hold contiguous blocks)
     owner: List[int] = []
     ranks = []
@@ -227,19 +229,8 @@ def _merge_track(gathered, sources, cfg, opt, out: Path, job, seconds: float) ->
     n_feat = sum(s["published_features"] for s in sums)
     skipped = [{**k, "stream": b} for b, s in enumerate(sums) for k in s["skipped"]]
     summary = {
-        "streams": len(sums),
-        "frames": frames,
-        "published": published,
-        "published_features": n_feat,
-        "mean_features": float(n_feat / published) if published else 0.0,
-        "tracks": int(lengths.size),
-        "mean_track_length": float(lengths.mean()) if lengths.size else 0.0,
-        "median_track_length": float(np.median(lengths)) if lengths.size else 0.0,
-        "seconds": round(float(seconds), 6),
-        "frames_per_second": float(frames / seconds) if seconds > 0 else 0.0,
-        "skipped_bad_frames": len(skipped),
-        "skipped": skipped,
-        "track_images": sum(s["track_images"] for s in sums),
+        **run_counts(len(sums), frames, published, n_feat, lengths, seconds, skipped,
+                     sum(s["track_images"] for s in sums)),
         "per_stream": [s["per_stream"][0] for s in sums],
         "steps": max((s["steps"] for s in sums), default=0),
         "tracker_seconds": round(sum(r.get("tracker_seconds", 0.0) for r in ranks), 6),

@@ -37,6 +37,7 @@ _EXPORTS = {
     "make_room": "synthetic",
     "render_loop_sequence": "synthetic",
     "synthetic_flight": "flight",
+    "reprojection_errors": "flight",
     "fly_over": "flight",
     "Flight": "flight",
     "Degradation": "flight",

@@ -113,6 +113,23 @@ FLY_SUPERSAMPLE = 3
 VIEW_MARGIN = 1.15
 
 
+def reprojection_errors(observations, homographies) -> np.ndarray:
+    """Ground-truth errors of tracks on a flight (px, float64): a feature id first seen at ``uv0`` in
+    frame ``k0`` must be at ``H_k H_k0^-1 uv0`` in frame ``k``. ``observations``: per frame ``(ids (n,),
+    uv (n, 2))`` numpy arrays; ``homographies``: per frame ``(3, 3)`` (``synthetic_flight``'s ``Hs``).
+    One error per observation after the first of its id, in frame order."""
+    birth, errs = {}, []
+    for k, (ids, uv) in enumerate(observations):
+        for i, p in zip(np.asarray(ids).tolist(), np.asarray(uv, dtype=np.float64)):
+            if i not in birth:
+                birth[i] = (k, p)
+                continue
+            k0, p0 = birth[i]
+            q = homographies[k] @ np.linalg.inv(homographies[k0]) @ np.array([p0[0], p0[1], 1.0])
+            errs.append(np.hypot(*(q[:2] / q[2] - p)))
+    return np.array(errs, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class Flight:
     """``B`` flights of ``T`` frames over a photo (module docstring, "fly_over").
