@@ -269,7 +269,7 @@ def write_golden(digests: Dict[str, Tuple[str, ...]], path: Path = GOLDEN_FILE) 
     order = {case_id(s, v): i for i, (s, v) in enumerate(CASES)}
     keys = sorted(digests, key=lambda k: (order.get(k.rsplit("/", 1)[0], len(order)), k))
     lines = [
-        "# golden battery (tests/_golden.py): every output of every step, sha256[:%d] of dtype, shape, bytes" % DIGEST_CHARS,
+        f"# golden battery (tests/_golden.py): every output of every step, sha256[:{DIGEST_CHARS}] of dtype, shape, bytes",
         "# regenerate on purpose: python -m tests.regenerate_golden [scenario/variant ...]",
         "# frame columns: " + " ".join(FRAME_FIELDS),
         "# state columns: " + " ".join(STATE_FIELDS),
