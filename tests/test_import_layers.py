@@ -21,8 +21,9 @@ PACKAGE = "torch_frontend"
 # above. Entries are modules or packages of torch_frontend (a package holds its submodules); "" is
 # the package's own __init__ (the lazy facade over everything).
 LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
-    # exceptions, the lazy-name helper, atomic file writes, compiler marks: no torch_frontend imports
-    ("base", ("errors", "_lazy", "_atomic", "_compiler")),
+    # exceptions, the lazy-name helper, atomic file writes, compiler marks, the one cache helper, the
+    # autodiff helpers: no torch_frontend imports
+    ("base", ("errors", "_lazy", "_atomic", "_compiler", "_cache", "_autodiff")),
     # the OpenCV FileStorage reader (numpy + yaml), argument checks, rotations/quaternions
     ("readers and maths", ("opencv_yaml", "_checks", "geometry")),
     # camodocal camera models; trajectory files, alignment and ATE

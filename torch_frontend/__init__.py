@@ -16,6 +16,7 @@ _EXPORTS = {
     # foundation
     "ConfigError": "errors",
     "DataError": "errors",
+    "clear_caches": "_cache",
     "TrackerConfig": "config",
     "load_config": "config",
     "load_camera": "config",

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import functools
 import json
 import os
 import re
@@ -275,9 +274,8 @@ def _manifest(folder: Path, kind: str) -> str:
 # swapping folders
 
 
-@functools.cache
-def _renameat2():
-    """libc's ``renameat2`` (Linux), or None."""
+def _load_renameat2():
+    """libc's ``renameat2`` (Linux), or None (looked up once, at import: a few microseconds)."""
     if not sys.platform.startswith("linux"):
         return None
     try:
@@ -291,13 +289,14 @@ def _renameat2():
     return fn
 
 
+_RENAMEAT2 = _load_renameat2()
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
 
 
 def _exchange(a: Path, b: Path) -> bool:
     """Swap the paths ``a`` and ``b`` in one step; False where the system cannot."""
-    fn = _renameat2()
+    fn = _RENAMEAT2
     if fn is None:
         return False
     import ctypes

@@ -29,6 +29,8 @@ from typing import Dict, Iterator, List, Optional, Tuple
 
 import torch
 
+from ._autodiff import derivative_wanted
+
 __all__ = ["Strategy", "CPU", "ONE_PASS", "STRATEGIES", "for_device", "inplace_ok", "reference_forms"]
 
 
@@ -159,42 +161,15 @@ _REFERENCE_ONLY = threading.local()
 
 def inplace_ok(*tensors: Optional[torch.Tensor]) -> bool:
     """True when a kernel may take its fast (in-place) form for these tensors: none of them
-    requires a gradient and :func:`reference_forms` is not active. ``None`` entries are ignored.
+    carries a derivative (``requires_grad`` or a forward-mode tangent,
+    :func:`~torch_frontend._autodiff.derivative_wanted`) and :func:`reference_forms` is not
+    active. ``None`` entries are ignored.
 
     The fast form of every kernel step performs the reference form's operations in the same order
     (in place, or into a preallocated output), so both give bit-identical values."""
     if getattr(_REFERENCE_ONLY, "on", False):
         return False
-    for t in tensors:
-        if t is not None and t.requires_grad:
-            return False
-    return True
-
-
-def straight_through(soft: torch.Tensor, hard: torch.Tensor) -> torch.Tensor:
-    """Value of ``hard`` with the gradient of ``soft`` (straight-through estimator: roundings of the
-    8-bit emulation). The reference form adds ``soft - soft.detach()``, which is exactly 0 for finite
-    ``soft``, so the value is ``hard`` bit for bit; the fast form (no derivative wanted, also under
-    no ``torch.func`` / forward-AD transform, whose tensors leave ``requires_grad`` False) is ``hard``.
-    (Not on the 8-bit path's per-frame work: it runs only where gradients may be recorded.)"""
-    if inplace_ok(soft) and not transforms_active():
-        return hard
-    return hard.detach() + (soft - soft.detach())
-
-
-def transforms_active() -> bool:
-    """A ``torch.func`` transform or a forward-AD dual level is active (never while dynamo traces:
-    a compiled graph sees plain tensors). ~0.2 us. Under a transform ``requires_grad`` does not say
-    whether a derivative is wanted (dual and functorch-wrapped tensors leave it False)."""
-    if torch.compiler.is_compiling():
-        return False
-    return torch.autograd.forward_ad._current_level >= 0 or torch._C._functorch.peek_interpreter_stack() is not None
-
-
-def derivative_wanted(*tensors: Optional[torch.Tensor]) -> bool:
-    """Some derivative through these tensors may be recorded: one of them requires a gradient, or a
-    ``torch.func`` transform / forward-AD level is active. ``None`` entries are ignored."""
-    return any(t is not None and t.requires_grad for t in tensors) or transforms_active()
+    return not derivative_wanted(*tensors)
 
 
 @contextlib.contextmanager

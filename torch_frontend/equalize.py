@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from . import _tuning
+from ._autodiff import derivative_wanted
 from ._checks import as_image_batch
 from .errors import ConfigError
 
@@ -277,7 +278,7 @@ def _clahe_straight_through(img: torch.Tensor, clip_limit: float, gx: int, gy: i
     (:func:`_clahe_slope`). Without a gradient to record: the 8-bit result as float."""
     u8 = img.detach().to(torch.uint8).contiguous()
     hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable).to(img.dtype)
-    if not _tuning.derivative_wanted(img):
+    if not derivative_wanted(img):
         return hard
     slope = _clahe_slope(u8, clip_limit, gx, gy).to(img.dtype)
     return hard + slope * (img - img.detach())  # img - img.detach() is exactly 0: the value is hard

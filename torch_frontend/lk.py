@@ -134,6 +134,7 @@ from typing import Tuple, Union
 import torch
 
 from . import _tuning
+from ._autodiff import straight_through
 from ._checks import as_image_batch, check_points, check_shape, default_valid
 from .errors import ConfigError
 from .pyramid import Pyramid, _build_pyramid_impl
@@ -194,7 +195,7 @@ def _outside_transforms():
             F.push_dynamic_layer_stack(saved.pop())
 
 
-_ste = _tuning.straight_through
+_ste = straight_through
 
 
 def _soft_weights(frac: torch.Tensor) -> torch.Tensor:
@@ -1421,7 +1422,10 @@ def _track_lk_implicit(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, valid: to
 _fwad = torch.autograd.forward_ad
 
 
-_transforms_active = _tuning.transforms_active
+def _transforms_active() -> bool:
+    if torch.compiler.is_compiling():
+        return False
+    return _fwad._current_level >= 0 or torch._C._functorch.peek_interpreter_stack() is not None
 
 
 def _forward_ad_active() -> bool:

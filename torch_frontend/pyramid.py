@@ -30,6 +30,8 @@ import torch
 import torch.nn.functional as F
 
 from . import _tuning
+from ._autodiff import derivative_wanted, straight_through
+from ._cache import holds_plain_tensors
 from ._checks import as_float_image, as_image_batch
 from .errors import ConfigError
 
@@ -196,7 +198,10 @@ class Pyramid:
         out = self._padded.get(key)
         if out is None:
             out = pad_reflect101(t.to(dtype), pad_h, pad_w)
-            if not _tuning.derivative_wanted(t):  # (dual / functorch-wrapped levels must not outlive their transform)
+            # a level that carries a derivative is padded per call (a copy padded under no_grad
+            # would cut a later call's gradient); one padded under a torch.func transform is that
+            # transform's wrapper, which must not outlive it
+            if not derivative_wanted(t) and (torch.compiler.is_compiling() or holds_plain_tensors(out)):
                 self._padded[key] = out
         return out
 
@@ -284,7 +289,7 @@ def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool,
             if _tuning.inplace_ok(level):
                 level = level.add_(0.5).floor_()
             else:  # straight through the rounding (floor's gradient is 0 everywhere), the same value
-                level = _tuning.straight_through(level, torch.floor(level + 0.5))
+                level = straight_through(level, torch.floor(level + 0.5))
         levels.append(level)
     grads = [_scharr_impl(t) for t in levels] if with_gradients else None
     return Pyramid(levels, grads, round_levels)

@@ -25,12 +25,12 @@ gradient (``hard + soft - soft.detach()``), for losses that must count exactly t
 
 from __future__ import annotations
 
-import functools
 from typing import Optional
 
 import torch
 import torch.nn.functional as F
 
+from .._cache import cached
 from .._checks import as_image_batch, check_shape, default_valid
 from ..pyramid import Pyramid
 
@@ -46,7 +46,7 @@ PHOTO_SIGMA = 16.0
 BORDER_TEMPERATURE = 0.5
 
 
-@functools.lru_cache(maxsize=16)
+@cached(16)
 def _window_offsets(win: int, dtype: torch.dtype, device) -> Tensor:
     """``(win * win, 2)`` offsets ``(dx, dy)`` of a window centred on its point, row-major."""
     r = torch.arange(win, dtype=dtype, device=device) - (win - 1) / 2.0

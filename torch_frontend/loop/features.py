@@ -52,7 +52,6 @@ statistics as VINS's file). Descriptors from different patterns are not comparab
 
 from __future__ import annotations
 
-import functools
 import math
 from pathlib import Path
 from typing import Optional, Tuple, Union
@@ -60,6 +59,7 @@ from typing import Optional, Tuple, Union
 import numpy as np
 import torch
 
+from .._cache import cached
 from .._checks import as_image_batch, check_points, check_shape, default_valid
 from ..errors import ConfigError
 from ..pyramid import _reflect101_index
@@ -246,7 +246,7 @@ def fast(
 
 
 # ------------------------------------------------------------------------------- Gaussian blur
-@functools.cache
+@cached(16)
 def _fixed_gaussian_kernel(ksize: int, sigma: float, bits: int = 8) -> Tuple[int, ...]:
     """OpenCV's 8-bit fixed-point Gaussian kernel (``getGaussianKernelFixedPoint_ED``):
     the normalised Gaussian scaled by ``2**bits``, rounded left to right with error diffusion,
@@ -336,7 +336,7 @@ def _pattern_tensor(pattern, device) -> torch.Tensor:
     return p.to(device=device, dtype=torch.long)
 
 
-@functools.lru_cache(maxsize=1)
+@cached(1)
 def _default_pattern_np() -> np.ndarray:
     return np.load(DEFAULT_PATTERN_PATH)
 

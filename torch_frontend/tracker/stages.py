@@ -18,12 +18,12 @@ frame, and :func:`track_right` for the stereo camera.
 from __future__ import annotations
 
 import contextlib
-import functools
 from typing import NamedTuple, Optional, Tuple
 
 import torch
 
-from .. import _tuning
+from .._autodiff import derivative_wanted
+from .._cache import cached
 from .._checks import gather_slots
 from .._compiler import constant_result
 from ..corners import _good_features_impl
@@ -185,7 +185,7 @@ def lift_normalised(camera, pts: Tensor, valid: Tensor) -> Tensor:
     return torch.where(valid.unsqueeze(-1), xy, torch.zeros_like(xy)).to(pts.dtype)
 
 
-@functools.lru_cache(maxsize=32)
+@cached(32)
 def _pinhole_centre(width: int, height: int, device) -> Tensor:
     """The virtual pinhole's principal point ``(COL / 2, ROW / 2)`` (2,) float64, built once per device
     (a per-call ``torch.tensor`` would be a blocking host-to-device copy on CUDA)."""
@@ -247,7 +247,7 @@ def _ransac_states(batch: int, seed: int) -> tuple:
     return _ransac_states_cached(batch, seed)
 
 
-@functools.lru_cache(maxsize=16)
+@cached(16)
 def _ransac_states_cached(batch: int, seed: int) -> tuple:
     return tuple(_seeds(batch, seed=seed))
 
@@ -267,7 +267,7 @@ class Detection(NamedTuple):
     detect: Optional[Tensor] = None
 
 
-@functools.lru_cache(maxsize=32)
+@cached(32)
 def _stream_rows(batch: int, device) -> Tensor:
     """``arange(B)`` on ``device``, built once (the capturable path's "every stream")."""
     return torch.arange(batch, device=device)
@@ -321,7 +321,7 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
 def _mask_points(table: FeatureTable) -> Tensor:
     """The pixels setMask rounds into its mask: a discrete choice, so without a graph (the table's
     permutation keeps the features' gradients)."""
-    return table.pts.detach() if _tuning.derivative_wanted(table.pts) else table.pts
+    return table.pts.detach() if derivative_wanted(table.pts) else table.pts
 
 
 def _setmask_order(table: FeatureTable) -> Tensor:
@@ -350,7 +350,7 @@ def _set_mask_static(table: FeatureTable, detect: Tensor, params: TrackerParams,
     return table.permute(order).compact(keep), Detection(_stream_rows(B, dev), mask, detect), overflow & detect
 
 
-@functools.lru_cache(maxsize=32)
+@cached(32)
 def _slot_rows(batch: int, capacity: int, device) -> Tensor:
     """``(B, K)`` identity slot order, built once."""
     return torch.arange(capacity, device=device).expand(batch, capacity)
@@ -364,7 +364,7 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
     (the fixed candidate block / rounds too small; None on the default path)."""
     rows = detection.rows
     B = table.batch
-    if _tuning.derivative_wanted(img):  # corners are a discrete choice: detected pixels carry no gradient
+    if derivative_wanted(img):  # corners are a discrete choice: detected pixels carry no gradient
         img = img.detach()
     if detection.detect is not None:  # capturable: every stream, K = max_cnt outputs, masked
         n_max = table.capacity - table.valid.sum(1)

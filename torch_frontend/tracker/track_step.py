@@ -25,8 +25,10 @@ import warnings
 from typing import Optional, Tuple
 
 import torch
+import torch.utils._pytree as pytree
 
 from .. import _tuning
+from .._autodiff import derivative_wanted, has_tangent, straight_through
 from .._checks import as_image_batch, check_shape
 from .clock import ClockDecision, count_published, mono_clock
 from .frame import FeatureFrame
@@ -128,15 +130,15 @@ def _straight_through_8bit(img: Tensor, name: str) -> Tensor:
     the gradient of the clamp alone (straight through the rounding: the identity inside 0..255).
 
     float32 because the 8-bit path's pyramid is float32; the cast is differentiable, so a float64
-    image gets its gradient (``_tuning.straight_through``: the value is the rounded image bit for bit)."""
+    image gets its gradient (``_autodiff.straight_through``: the value is the rounded image bit for bit)."""
     if img.dtype == torch.uint8:
         return img.to(torch.float32).contiguous()
     rounded = img.detach().round()
     _check_float_values(img.detach(), rounded, name)
     hard = rounded.clamp(0, 255).to(torch.float32)
-    if not _tuning.derivative_wanted(img):
+    if not derivative_wanted(img):
         return hard.contiguous()
-    return _tuning.straight_through(img.clamp(0, 255).to(torch.float32), hard).contiguous()
+    return straight_through(img.clamp(0, 255).to(torch.float32), hard).contiguous()
 
 
 def _narrow_float(timestamps) -> Optional[torch.dtype]:
@@ -224,12 +226,20 @@ def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams
               active: Tensor, stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
     """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
     bool, all on the state's device)."""
-    if params.differentiable and _tuning.transforms_active():
-        # torch.func / forward AD: every kernel in its reference (out-of-place) form, whose choice
-        # of form does not read requires_grad (dual and wrapped tensors leave it False)
+    if params.differentiable and _forward_mode(state, img, right, params):
+        # forward-mode AD (torch.func.jvp, dual tensors): every kernel in its reference
+        # (out-of-place) form, as forward AD does not go through the fast forms' out= buffers
         with _tuning.reference_forms():
             return _step_mode(state, img, t, params, right, active, stage)
     return _step_mode(state, img, t, params, right, active, stage)
+
+
+def _forward_mode(state: TrackerState, img: Tensor, right: Optional[Tensor], params: TrackerParams) -> bool:
+    """Some input of the step (images, state, camera parameters) has a forward-mode tangent."""
+    leaves = [img, right, *pytree.tree_leaves(state), *params.camera.parameters()]
+    if params.camera1 is not None:
+        leaves += list(params.camera1.parameters())
+    return any(isinstance(x, Tensor) and has_tangent(x) for x in leaves)
 
 
 def _step_mode(state, img, t, params, right, active, stage):
@@ -285,7 +295,7 @@ def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, 
     if overflow is None:
         overflow = torch.zeros_like(tracked)
     uv, xy = f.pts.clone(), f.un_pts.clone()
-    if _tuning.derivative_wanted(uv, xy):
+    if derivative_wanted(uv, xy):
         # empty slots hold stale values of lost features: same values, no gradient through them
         keep = f.valid.unsqueeze(-1)
         uv, xy = torch.where(keep, uv, uv.detach()), torch.where(keep, xy, xy.detach())
