@@ -4,7 +4,7 @@ VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test test-all bench lint clean
 
 $(VPY):
 	$(PY) -m venv $(VENV)
@@ -20,8 +20,13 @@ demo: $(STAMP)
 	$(VENV)/bin/torch-frontend demo
 	$(VENV)/bin/torch-frontend demo --loop
 
+# the suite on every core (pytest-xdist; each worker runs torch on 1 thread, tests/conftest.py), without
+# the slow cases; test-all (what CI runs) adds them
 test: $(STAMP)
-	$(VPY) -m pytest -q
+	$(VPY) -m pytest -q -n auto --dist loadscope -m "not slow"
+
+test-all: $(STAMP)
+	$(VPY) -m pytest -q -n auto --dist loadscope
 
 bench: $(STAMP)
 	$(VPY) benchmarks/bench_pipeline.py --compile --capturable

@@ -1,4 +1,4 @@
-"""Benchmark (issue 19): the cost of training through the whole tracker, ``FeatureTracker(...,
+"""Benchmark: the cost of training through the whole tracker, ``FeatureTracker(...,
 differentiable=True)`` against the 8-bit path, in one process.
 
 Input: the repo's EuRoC sample (``torch_frontend/data/euroc_mini``, cam0, 752x480, EuRoC config:

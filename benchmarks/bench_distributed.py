@@ -1,4 +1,4 @@
-"""Sharded ``track`` (issue 21): stream-frames per second with 1 and 2 ``torchrun`` processes (1
+"""Sharded ``track``: stream-frames per second with 1 and 2 ``torchrun`` processes (1
 thread each, gloo on the CPU), with and without decoding in a DataLoader worker, and the share of
 the time the decoding takes.
 

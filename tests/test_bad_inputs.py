@@ -1,5 +1,5 @@
 """The bad-input corpus: what each bad input a user may give raises, or which exit code and stderr
-line the CLI gives, and the words the message must contain (issue 20).
+line the CLI gives, and the words the message must contain.
 
 Add a new bad input as one ``Case`` in the list it belongs to:
 
@@ -12,8 +12,8 @@ Add a new bad input as one ``Case`` in the list it belongs to:
   costs an interpreter start), which also proves that no traceback or library noise is printed.
 
 ``ctx`` gives ``ctx.tmp`` (a fresh folder) and ``ctx.mp`` (pytest's monkeypatch). ``fixed=True``
-marks the inputs that gave garbage, a wrong message or a traceback before issue 20 (the closing
-note's before/after table); the others document behaviour that was already right.
+marks the inputs that once gave garbage, a wrong message or a traceback (regression cases); the
+others document behaviour that was always right.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ import pytest
 import torch
 
 import torch_frontend as tf
+from tests._helpers import crop, make_asl, small_config, truncate
 from tests.conftest import REPO, SAMPLE, load_gray, sample_frames
-from tests.test_io import crop, make_asl, small_config, truncate
 from torch_frontend.cli import main
 from torch_frontend.config import config_from_sensor_yaml, load_config
 from torch_frontend.errors import ConfigError, DataError
@@ -345,7 +345,7 @@ API_CASES = [
     Case("cli_os_error_reading_is_not_writing", _cli_os_error_names_reading, None, fixed=True),
     Case("loop_options_keyframe_angle_inf", lambda c: LoopOptions(train_vocabulary=True, keyframe_angle=math.inf).check(),
          OptionError, ("keyframe_angle", "finite"), fixed=True),
-    # --- a sample of what already gave a clear error before issue 20
+    # --- a sample of what always gave a clear error
     Case("corrupt_png", _corrupt_png, DataError, ("c.png", "corrupt PNG", "CRC")),
     Case("config_without_max_cnt", lambda c: load_config(_config(c, "max_cnt: 150", "other_key: 150")), ConfigError,
          ("bad.yaml", "max_cnt", "missing")),

@@ -1,4 +1,4 @@
-"""Camera fixes of issue 19 (item 5): exact second derivatives of Kannala-Brandt ``lift``, the
+"""Camera derivatives: exact second derivatives of Kannala-Brandt ``lift``, the
 ``jacobian="implicit"`` (converged) ``lift`` of Pinhole / MEI, and a damped-Newton undistortion
 that stays finite where camodocal's fixed point diverges."""
 

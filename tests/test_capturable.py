@@ -1,4 +1,4 @@
-"""The capturable tracker step (issue 18): shape-static, no host syncs, a launch count independent
+"""The capturable tracker step: shape-static, no host syncs, a launch count independent
 of B, identical results to the CPU-tuned path, one graph for the compiler."""
 
 from __future__ import annotations
@@ -258,7 +258,7 @@ def test_an_lk_iteration_budget_trades_launches_for_an_overflow_flag():
 
 
 def test_lo_ransac_in_the_tracker_on_both_paths():
-    """``F_method: lo`` (issue 22) through rejectWithF: the capturable step equals the default path
+    """``F_method: lo`` through rejectWithF: the capturable step equals the default path
     (no overflow on the sample), and an unknown estimator is refused by name."""
     cfg = dataclasses.replace(tf.load_config(CFG), F_method="lo")
     assert TrackerParams.from_config(cfg).F_method == "lo"

@@ -15,27 +15,21 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import REPO, SAMPLE, sample_frames
-from tests.test_io import TOPIC, crop, make_asl, small_config, small_frames, truncate, write_bag
+from tests._helpers import (
+    CONFIG,
+    OUTPUTS,
+    TOPIC,
+    assert_one_error_line,
+    crop,
+    make_asl,
+    run_cli,
+    small_config,
+    small_frames,
+    truncate,
+    write_bag,
+)
+from tests.conftest import SAMPLE, sample_frames
 from torch_frontend.cli import default_config_path, main
-
-CONFIG = str(REPO / "configs" / "euroc.yaml")
-OUTPUTS = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png")
-
-
-def run_cli(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def assert_one_error_line(err: str, *needles: str) -> None:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, f"expected one stderr line, got: {err!r}"
-    assert lines[0].startswith("torch-frontend: error: ")
-    assert "Traceback" not in err
-    for n in needles:
-        assert n in lines[0], f"{n!r} not in {lines[0]!r}"
 
 
 def test_help_everywhere(capsys):
@@ -153,7 +147,7 @@ def test_skip_bad_frames(tmp_path, capsys):
 
 
 def _bad_inputs(tmp_path: Path):
-    """(argv, exit code, needles) for each bad input of issue 8."""
+    """(argv, exit code, needles) for each bad input of the command line."""
     cases = []
     cases.append((["--euroc", tmp_path / "nope"], 1, [str(tmp_path / "nope"), "folder not found"]))
     cases.append((["--images", tmp_path / "nope2", "--fps", "20"], 1, ["nope2", "folder not found"]))

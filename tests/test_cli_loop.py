@@ -1,4 +1,4 @@
-"""``torch-frontend loop`` and ``torch-frontend demo --loop`` (issue 12): the demo end to end (loops
+"""``torch-frontend loop`` and ``torch-frontend demo --loop``: the demo end to end (loops
 only at true revisits, ATE at least halved, every output present, TUM/VINS files parse back), the
 ``loop`` command on an image folder with poses / ground truth / vocabulary files, and one clear
 stderr line + non-zero exit for each bad input.
@@ -23,7 +23,7 @@ from torch_frontend.loop.report import LOOP_COLUMNS, OUTPUT_FILES, STREAM_FILES
 from torch_frontend.pipelines import loop as loop_run
 from torch_frontend.trajectory import Trajectory, read_trajectory, write_tum, write_vins_csv
 
-from .test_cli import assert_one_error_line, run_cli
+from ._helpers import assert_one_error_line, run_cli
 
 SMALL_DEMO = dict(keyframes_per_lap=56)
 

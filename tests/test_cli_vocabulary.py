@@ -8,8 +8,8 @@ import shutil
 import pytest
 import torch
 
+from tests._helpers import assert_one_error_line, run_cli
 from tests.conftest import load_gray, sample_frames
-from tests.test_cli import assert_one_error_line, run_cli
 from torch_frontend.cli import main
 from torch_frontend.loop import Vocabulary, brief, fast
 

@@ -1,4 +1,4 @@
-"""Device hygiene (issue 18, item 5): the loop-closure kernels run on a CUDA device without mixing in
+"""Device hygiene: the loop-closure kernels run on a CUDA device without mixing in
 CPU tensors, checked without a GPU in two ways.
 
 * On the simulated CUDA device of ``../shared/tools/cuda_sim`` (tensors labelled ``cuda:0``, data on

@@ -1,4 +1,4 @@
-"""Issue 21: the pipelines sharded over processes with ``torch.distributed`` (gloo on the CPU, 2
+"""The pipelines sharded over processes with ``torch.distributed`` (gloo on the CPU, 2
 ranks, 1 thread each, tiny inputs).
 
 * ``torchrun -m torch_frontend track`` with 2 ranks: every ``stream<b>/`` output set is the one a
@@ -47,8 +47,8 @@ import torch_frontend.outputs  # noqa: F401
 import torch_frontend.pipelines.loop  # noqa: F401
 import torch_frontend.pipelines.sharded  # noqa: F401
 import torch_frontend.tracker  # noqa: F401
+from tests._helpers import make_asl, small_config, truncate
 from tests.conftest import REPO, sample_frames
-from tests.test_io import make_asl, small_config, truncate
 from torch_frontend.cli import main
 from torch_frontend.distributed import dist_env, rank_device, shard, shard_indices
 from torch_frontend.distributed import kmedians as _kmedians  # noqa: F401

@@ -10,6 +10,7 @@ is imported.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 from typing import Dict, List, Set, Tuple
 
@@ -222,3 +223,19 @@ def test_the_graph_reader_sees_every_kind_of_import():
     assert "torch_frontend.geometry" in graph["torch_frontend.loop.optimize"]
     assert "torch_frontend.io" in graph["torch_frontend.outputs"]  # io/__init__ runs before io.multistream
     assert "torch_frontend.io" not in graph["torch_frontend.io.sources"]  # already being imported
+
+
+def _layout_rows():
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    table = text[text.index("| layer | modules of `torch_frontend/`"):].split("\n\n")[0].splitlines()[2:]
+    rows = []
+    for line in table:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        names = [n.rstrip("/") for n in re.findall(r"`([^`]+)`", cells[1])]
+        rows.append((cells[0], tuple("" if n == "__init__" else n for n in names)))
+    return rows
+
+
+def test_layout_table_is_the_import_plan():
+    """The README's layout table lists the layers of ``LAYERS`` in order, each with its entries."""
+    assert _layout_rows() == [(name, tuple(entries)) for name, entries in LAYERS]

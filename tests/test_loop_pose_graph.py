@@ -1,4 +1,4 @@
-"""The pose graph end to end on a rendered sequence (issue 11 acceptance).
+"""The pose graph end to end on a rendered sequence.
 
 A camera flies a closed loop twice inside a room textured with real photos
 (``testing.synthetic.render_loop_sequence``); the VIO poses drift (yaw + xyz random walk), the
@@ -236,7 +236,7 @@ def _listing(folder):
 
 
 def test_save_never_deletes_what_it_did_not_write(scene, tmp_path):
-    """``save`` (issue 20) refuses a folder holding a user's file, naming it, and never moves a
+    """``save`` refuses a folder holding a user's file, naming it, and never moves a
     file at the target away; nothing is touched and no temporary is left then."""
     seq, kfs, voc = scene
     pg = _run(seq, voc, kfs[:3])

@@ -1,4 +1,4 @@
-"""Place recognition on a rendered sequence that revisits places (issue 10 acceptance).
+"""Place recognition on a rendered sequence that revisits places.
 
 A camera flies the same closed loop twice over a "world" made of two real photos (an EuRoC frame
 and the Middlebury Motorcycle image side by side). Poses are exact, so the ground-truth loops are

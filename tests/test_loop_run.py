@@ -1,4 +1,4 @@
-"""``pipelines.loop.run_loop`` (issue 12): several sequences sharing one map vs separate graphs, the
+"""``pipelines.loop.run_loop``: several sequences sharing one map vs separate graphs, the
 keyframe rule, pose coverage, the extrinsic from configs and vocabulary files of every format.
 The single-sequence demo end to end is in ``test_cli_loop.py``."""
 

@@ -1,4 +1,4 @@
-"""Output sets are atomic as a whole, and nothing the library did not write is deleted (issue 20,
+"""Output sets are atomic as a whole, and nothing the library did not write is deleted (
 items 1-2): ``track`` stopped by SIGINT, SIGTERM or SIGKILL in the middle of writing leaves its
 ``--out`` with the complete previous set, a rerun leaves the complete new set and no temporary;
 foreign files in ``--out`` are refused, never deleted; ``loop``'s writer is atomic the same way;
@@ -25,9 +25,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests._helpers import OUTPUTS, assert_one_error_line, make_asl, run_cli, small_config
 from tests.conftest import REPO
-from tests.test_cli import OUTPUTS, assert_one_error_line, run_cli
-from tests.test_io import make_asl, small_config
 from torch_frontend import _atomic
 from torch_frontend._atomic import MARKER, OutputFolderError, StagedFolder, write_bytes_atomic
 from torch_frontend.loop import report

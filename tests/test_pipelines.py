@@ -11,8 +11,8 @@ import re
 import pytest
 import torch
 
+from tests._helpers import CONFIG, assert_one_error_line, run_cli
 from tests.conftest import REPO
-from tests.test_cli import CONFIG, assert_one_error_line, run_cli
 from torch_frontend.errors import ConfigError
 from torch_frontend.pipelines import (
     LoopOptions,

@@ -1,4 +1,4 @@
-"""Project set-up (issue 3): the two README commands, CI entry point, layout, licence files."""
+"""Project set-up: the two README commands, CI entry point, layout, licence files."""
 
 from __future__ import annotations
 
@@ -7,10 +7,16 @@ import re
 from .conftest import REPO
 
 
-def test_ci_runs_make_test():
+def test_ci_runs_the_full_suite_command_of_the_readme():
+    """CI runs ``make test-all`` (``make test`` plus the slow cases), a command the README gives."""
     run = (REPO / ".ci" / "run").read_text()
     assert run.startswith("#!/usr/bin/env bash")
-    assert re.search(r"^make test$", run, re.M)
+    assert re.search(r"^make test-all$", run, re.M)
+    assert "make test-all" in (REPO / "README.md").read_text()
+    mk = (REPO / "Makefile").read_text()
+    fast = re.search(r"^test:.*\n\t(.*)$", mk, re.M).group(1)
+    full = re.search(r"^test-all:.*\n\t(.*)$", mk, re.M).group(1)
+    assert '-m "not slow"' in fast and "-m" not in full.split("pytest", 1)[1]
 
 
 def test_makefile_installs_cpu_torch_first():
@@ -18,7 +24,7 @@ def test_makefile_installs_cpu_torch_first():
     torch_line = mk.index("pip install -q torch==2.13.0")
     editable = mk.index('pip install -q -e ".[dev]"')
     assert torch_line < editable
-    for target in ("demo:", "test:", "bench:"):
+    for target in ("demo:", "test:", "test-all:", "bench:"):
         assert re.search(rf"^{target}", mk, re.M)
 
 

@@ -1,6 +1,6 @@
-"""FeatureTracker (issue 7): VINS-Mono front end for B streams, against the OpenCV oracle.
+"""FeatureTracker: VINS-Mono front end for B streams, against the OpenCV oracle.
 
-Tolerances (issue 7): per published frame the feature count within ±2 % of the oracle's, ≥ 95 % of
+Tolerances: per published frame the feature count within ±2 % of the oracle's, ≥ 95 % of
 features within 0.1 px of an oracle feature, mean track length within 5 %, the same frames
 published; against ground truth, median reprojection error ≤ 0.1 px.
 """

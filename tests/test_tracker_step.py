@@ -1,4 +1,4 @@
-"""The pure tracker step (issue 17): ``state, frame = step(state, images, timestamps, params)``,
+"""The pure tracker step: ``state, frame = step(state, images, timestamps, params)``,
 the feature table whose columns move together, the state as a pytree, VINS's constants by name."""
 
 from __future__ import annotations

@@ -414,7 +414,7 @@ def _add_demo(sub) -> None:
         "demo",
         help="run on the sample data shipped with the package and print a summary",
         description="Track the 24 sample EuRoC cam0 frames shipped with the package "
-                    f"({SAMPLE_DIR}) with configs/euroc.yaml and write the outputs into --out.",
+                    "(torch_frontend/data/euroc_mini) with configs/euroc.yaml and write the outputs into --out.",
     )
     demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
     _add_run_options(demo, "out/demo")

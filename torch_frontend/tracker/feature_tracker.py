@@ -20,6 +20,7 @@ import torch
 import torch.utils._pytree as pytree
 
 from .._checks import check_shape
+from .._compiler import prepare_compile
 from ..config import TrackerConfig, load_config
 from .frame import FeatureFrame
 from .params import TrackerParams
@@ -228,6 +229,7 @@ class FeatureTracker:
         if self.device.type == "cuda":
             opts["mode"] = "reduce-overhead"
         opts.update(compile_kwargs)
+        prepare_compile()  # the package's assume_constant_result marks, applied before tracing
         self._compiled = _CompiledStep(torch.compile(_pure_step, **opts), self.device.type == "cuda", fallback)
 
     # ------------------------------------------------------------------ state
