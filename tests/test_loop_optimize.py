@@ -1,7 +1,8 @@
 """Pose-graph optimiser (VINS optimize4DoF / loop_fusion optimize6DoF) against an independent
 numpy solver written here (numerical Jacobians, IRLS Gauss-Newton with backtracking), on synthetic
 drifting loops; convergence on a 1,000-keyframe loop vs fixed multiplicative damping; the yaw
-single-wrap; analytic Jacobians vs autograd; implicit-function gradients (gradcheck); input checks.
+single-wrap; analytic Jacobians vs autograd; implicit-function gradients (gradcheck); input checks;
+each linear solver against a dense solve of its normal equations.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import torch
 
 from torch_frontend.errors import DataError
 from torch_frontend.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
+from torch_frontend.loop import linear_solvers as ls
 from torch_frontend.loop import optimize as opt
 
 HAS_SCIPY = importlib.util.find_spec("scipy") is not None
@@ -425,6 +427,12 @@ def test_input_checks():
         opt.optimize_4dof(*args[:5], jj, *args[6:])
     with pytest.raises(ValueError, match="solver"):
         opt.optimize_4dof(*args, solver="cholmod")
+    with pytest.raises(ValueError, match="band: expected a positive integer, got 0"):
+        opt.optimize_4dof(*args, band=0)
+    with pytest.raises(ValueError, match="iters: expected a non-negative integer, got 2.5"):
+        opt.optimize_4dof(*args, iters=2.5)
+    with pytest.raises(ValueError, match=r"t: expected shape \(N, 3\), got \(10, 2\)"):
+        opt.optimize_4dof(args[0][:, :2], *args[1:])
     args6 = list(problem6(d))
     qm = args6[5].clone()
     qm[0] = 0.0
@@ -432,6 +440,50 @@ def test_input_checks():
         opt.optimize_6dof(*args6[:5], qm, *args6[6:])
     with pytest.raises(ValueError, match=r"q: expected shape \(10, 4\)"):
         opt.optimize_6dof(args6[0], args6[1][:, :3], *args6[2:])
+
+
+def _block_system(N=12, p=4, rd=4, band=2, seed=0):
+    """A random SPD block system as the LM step builds it: near edges (at most ``band`` nodes
+    apart) in the matrix part, two long edges as the low-rank part; and its full dense matrix."""
+    g = torch.Generator().manual_seed(seed)
+    si, sj = opt.sequential_edges(torch.zeros(N, dtype=torch.int64), band)
+    fi, fj = torch.tensor([0, 3]), torch.tensor([9, 11])
+    Je = torch.randn(si.numel(), rd, 2 * p, generator=g, dtype=F64)
+    Jf = torch.randn(rd, 2 * p, fi.numel(), generator=g, dtype=F64)
+    Hd = torch.eye(p, dtype=F64).repeat(N, 1, 1)
+    Hd.index_add_(0, si, Je[..., :p].mT @ Je[..., :p]).index_add_(0, sj, Je[..., p:].mT @ Je[..., p:])
+    Hij = Je[..., :p].mT @ Je[..., p:]
+    Jff = Jf.permute(2, 0, 1)  # (F, rd, 2p)
+    # the same long edges as matrix blocks (the dense and SuperLU methods take every edge there)
+    Hd_all = Hd.clone().index_add_(0, fi, Jff[..., :p].mT @ Jff[..., :p])
+    Hd_all.index_add_(0, fj, Jff[..., p:].mT @ Jff[..., p:])
+    every = ls.BlockSystem(Hd_all, torch.cat([si, fi]), torch.cat([sj, fj]),
+                           torch.cat([Hij, Jff[..., :p].mT @ Jff[..., p:]]), None)
+    full = ls.dense_matrix(every.Hd, every.ei, every.ej, every.Hij)
+    rhs = torch.randn(N, p, generator=g, dtype=F64)
+    return ls.BlockSystem(Hd, si, sj, Hij, Jf), every, (si, sj, fi, fj), full, rhs
+
+
+@pytest.mark.parametrize("method", ["dense", "banded", "lapack_banded", "splu"])
+def test_linear_solvers_match_a_dense_solve(method):
+    """Each method solves ``(B + U Uᵀ) x = rhs`` (Woodbury for the long edges' ``U`` in the banded
+    ones) as ``torch.linalg.solve`` of the full matrix does."""
+    if method in ("lapack_banded", "splu") and not HAS_SCIPY:
+        pytest.skip("scipy is not installed: the scipy linear-solver options cannot run")
+    N, p, rd, band = 12, 4, 4, 2
+    banded, every, (si, sj, fi, fj), full, rhs = _block_system(N, p, rd, band)
+    ref = torch.linalg.solve(full, rhs.reshape(-1)).reshape(N, p)
+    if method in ("dense", "splu"):
+        sys = every
+        cr = ls.prepare_solver(method, N, p, band, every.ei, every.ej, fi[:0], fj[:0], rd, F64, rhs.device)
+    else:
+        sys, cr = banded, ls.prepare_solver(method, N, p, band, si, sj, fi, fj, rd, F64, rhs.device)
+    x, ok = ls.solve(sys, rhs, method, cr)
+    assert ok and x.shape == (N, p) and x.dtype == F64
+    assert torch.allclose(x, ref, rtol=0, atol=1e-10 * ref.abs().max())
+    assert ls.choose_solver("auto", rhs.device, 2, N, p, rd) == "dense"  # tiny: N p <= 128
+    with pytest.raises(ValueError, match="band: expected a positive integer, got 1.5"):
+        ls.check_solver_options(method, 1.5)
 
 
 def test_all_fixed_or_no_edges_returns_inputs():

@@ -57,6 +57,19 @@ def check_shape(t: torch.Tensor, shape: Shape, name: str) -> None:
         raise ValueError(f"{name}: expected shape {want_s}, got {tuple(dims)}")
 
 
+def check_int(value, name: str, minimum: int = 0) -> int:
+    """Check that ``value`` is an integer (an int, or a number equal to one) ``>= minimum``;
+    returns it as an ``int``.
+
+    Raises:
+        ValueError: naming ``name``, what was expected and the value given.
+    """
+    if int(value) != value or value < minimum:
+        want = {0: "a non-negative integer", 1: "a positive integer"}.get(minimum, f"an integer >= {minimum}")
+        raise ValueError(f"{name}: expected {want}, got {value!r}")
+    return int(value)
+
+
 def as_image_batch(img: torch.Tensor, name: str = "img") -> torch.Tensor:
     """Return ``img`` as a ``(B, 1, H, W)`` tensor.
 
