@@ -31,8 +31,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torch_frontend import ransac as _ransac  # noqa: E402
 from torch_frontend.ransac import find_fundamental  # noqa: E402
+from torch_frontend.ransac.samples import _clear_sample_caches  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import sync, write_json_atomic  # noqa: E402
@@ -157,7 +157,7 @@ def tracker_rows(args, device) -> list:
         means, firsts, cv_means, iters = [], [], [], []
         for _ in range(args.repeats):  # the whole sequence, each time from cold caches
             # the process-wide sample-table caches start empty, as in a fresh tracker
-            _ransac._clear_sample_caches()
+            _clear_sample_caches()
             ts = []
             for p1, p2, v in torch_calls:
                 sync(device)

@@ -25,8 +25,9 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     # exceptions, the lazy-name helper, atomic file writes, compiler marks, the one cache helper, the
     # autodiff helpers: no torch_frontend imports
     ("base", ("errors", "_lazy", "_atomic", "_compiler", "_cache", "_autodiff")),
-    # the OpenCV FileStorage reader (numpy + yaml), argument checks, rotations/quaternions
-    ("readers and maths", ("opencv_yaml", "_checks", "geometry")),
+    # the OpenCV FileStorage reader (numpy + yaml), argument checks, rotations/quaternions,
+    # polynomial roots (the cubic of Lambda Twist P3P)
+    ("readers and maths", ("opencv_yaml", "_checks", "geometry", "polynomial")),
     # camodocal camera models; trajectory files, alignment and ATE
     ("models", ("camera", "trajectory")),
     # VINS config files and sensor.yaml (torch-free; builds cameras on demand)

@@ -15,12 +15,24 @@ import numpy as np
 import pytest
 import torch
 
-from torch_frontend import _tuning, ransac
-from torch_frontend.ransac import FundamentalResult, find_fundamental, refit_fundamental
+from torch_frontend import _tuning
+from torch_frontend.ransac import FundamentalResult, find_fundamental, refit_fundamental, samples
+from torch_frontend.ransac.consts import _consts
+from torch_frontend.ransac.seven_point import _collinear_last, _run_7point, _solve_cubic_opencv
 
+from ._ransac_cases import (
+    FOCAL,
+    _cubic_cases,
+    _cv_mask,
+    _plant,
+    _reference_F,
+    _reference_subsets,
+    _synthetic_scenes,
+    _tie_problem,
+    _unit,
+)
 from .conftest import TEST_DATA, load_gray, sample_frames
 
-FOCAL = 460.0
 RATES = [0.0, 0.10, 0.25, 0.40]
 
 # VINS-Mono euroc_config.yaml pinhole (cam0); cam1 from the EuRoC cam1 sensor.yaml (VINS-Mono has
@@ -82,66 +94,6 @@ def _motorcycle_sets(k: int = 4, n: int = 150):
     return sets
 
 
-def _synthetic_scenes(k: int = 8, n: int = 150, noise: float = 0.15, seed: int = 3):
-    """Random non-planar points (depth 3..15 m), two known poses, 460-px pinhole, Gaussian noise."""
-    rng = np.random.default_rng(seed)
-    K = np.array([[FOCAL, 0, 376.0], [0, FOCAL, 240.0], [0, 0, 1.0]])
-    scenes = []
-    for _ in range(k):
-        z = rng.uniform(3.0, 15.0, n)
-        X = np.stack([rng.uniform(-0.8, 0.8, n) * z, rng.uniform(-0.5, 0.5, n) * z, z], -1)
-        R, _ = cv2.Rodrigues(rng.normal(0, 0.05, 3))
-        t = rng.normal(0, 0.3, 3) + np.array([0.4, 0.0, 0.1])
-        x1 = X @ K.T
-        X2 = X @ R.T + t
-        x2 = X2 @ K.T
-        scenes.append(
-            (
-                x1[:, :2] / x1[:, 2:] + rng.normal(0, noise, (n, 2)),
-                x2[:, :2] / x2[:, 2:] + rng.normal(0, noise, (n, 2)),
-            )
-        )
-    return scenes
-
-
-def _reference_F(a: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Reference geometry of a clean pair: cv2's 8-point fit on cv2's RANSAC inliers."""
-    m = _cv_mask(a, c)
-    F, _ = cv2.findFundamentalMat(a[m], c[m], cv2.FM_8POINT)
-    return F
-
-
-def _line_dists(F, a, c):
-    h1, h2 = np.c_[a, np.ones(len(a))], np.c_[c, np.ones(len(c))]
-    l2, l1 = h1 @ F.T, h2 @ F
-    d = np.abs((h2 * l2).sum(1))
-    return d / np.hypot(l1[:, 0], l1[:, 1]), d / np.hypot(l2[:, 0], l2[:, 1])
-
-
-def _plant(a: np.ndarray, c: np.ndarray, rate: float, rng, F_ref=None, col: int = 752, row: int = 480):
-    """Replace ``rate`` of the second-image points by gross outliers: uniform random points >= 20 px
-    from the true match and >= 5 px from the epipolar lines of the reference geometry in both
-    images (a uniform point within ~1 px of its epipolar line is geometrically an inlier and no
-    estimator can reject it)."""
-    n = len(c)
-    m = int(round(rate * n))
-    idx = rng.choice(n, size=m, replace=False)
-    out = c.copy()
-    for i in idx:
-        while True:
-            q = rng.uniform([0, 0], [col, row], size=(64, 2))
-            ok = np.hypot(*(q - c[i]).T) >= 20
-            if F_ref is not None:
-                d1, d2 = _line_dists(F_ref, np.repeat(a[i : i + 1], 64, 0), q)
-                ok &= np.minimum(d1, d2) >= 5.0
-            if ok.any():
-                out[i] = q[ok.argmax()]
-                break
-    planted = np.zeros(n, bool)
-    planted[idx] = True
-    return out, planted
-
-
 def _pad(sets):
     B, N = len(sets), max(len(a) for a, _ in sets)
     p1 = torch.full((B, N, 2), float("nan"), dtype=torch.float64)
@@ -152,12 +104,6 @@ def _pad(sets):
         p2[b, : len(c)] = torch.from_numpy(c)
         valid[b, : len(a)] = True
     return p1, p2, valid
-
-
-def _cv_mask(a, c):
-    F, m = cv2.findFundamentalMat(a.astype(np.float32), c.astype(np.float32), cv2.FM_RANSAC, 1.0, 0.99)
-    assert F is not None and m is not None
-    return m.ravel().astype(bool)
 
 
 def _precision(sets, planted) -> float:
@@ -442,37 +388,20 @@ def test_refit_gradcheck():
     assert torch.autograd.gradcheck(refit_fundamental, (p1, p2, w), eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
-def _reference_subsets(state: int, n: int, num: int) -> np.ndarray:
-    """OpenCV ``getSubset`` with ``cv::RNG(state)``, written out sequentially (the oracle of the
-    vectorised, lazily grown sample tables)."""
-    s, out = state, []
-    while len(out) < num:
-        cur: list = []
-        while len(cur) < 7:
-            s = (s & 0xFFFFFFFF) * 4164903690 + (s >> 32)
-            v = (s & 0xFFFFFFFF) % n
-            if v not in cur:
-                cur.append(v)
-        out.append(cur)
-    return np.array(out, dtype=np.int64)
-
-
 def test_sample_tables_match_sequential_rng():
     """The vectorised sample stream (jump-ahead lanes, all subset starts at once, lazy growth in
     pieces, process-wide cache) equals the sequential cv::RNG / getSubset rule, also for tiny n
     (many redraws) and for seeds above the multiply-with-carry modulus such as OpenCV's (uint64)-1."""
-    from torch_frontend import ransac as R
-
-    R._SUBSET_CACHE.clear()
-    R._RAW_CACHE.clear()
+    samples._clear_sample_caches()
     for seed in (-1, 1, 12345, -5 + 7919 * 63, 2**63 - 1, -(2**63)):
-        state = R._state_of(seed)
+        state = samples._state_of(seed)
         for n in (8, 9, 11, 14, 15, 16, 40, 149, 150, 151, 2000):
             ref = _reference_subsets(state, n, 300)
-            stream = R._subset_stream(state, n)
+            stream = samples._subset_stream(state, n)
             for upto in (5, 37, 38, 120, 300):  # grown in pieces, as rounds ask for them
                 assert np.array_equal(stream.upto(upto)[:upto], ref[:upto]), (seed, n, upto)
-            assert torch.equal(R._opencv_samples(state, n, 300), torch.from_numpy(ref))
+            assert samples._subset_stream(state, n) is stream  # the cached stream
+            assert torch.equal(samples._opencv_samples(state, n, 300), torch.from_numpy(ref))
 
 
 def test_tracker_like_calls_match_opencv():
@@ -496,37 +425,17 @@ def test_tracker_like_calls_match_opencv():
 
 
 # ----------------------------------------------------------------------------------------------
-# model order: which of two 7-point models with equal inlier counts RANSAC keeps (issue 20)
+# model order: which of two 7-point models with equal inlier counts RANSAC keeps
 # ----------------------------------------------------------------------------------------------
-def _cubic_cases() -> np.ndarray:
-    """Cubics of every kind ``cv::solveCubic`` tells apart: three distinct real roots, one real
-    root, double and triple roots with representable values (where cv2 itself reports 1, 2 or 3
-    roots, by rounding), ``c0 == 0`` (quadratics with two, one double or no real root; linear;
-    nothing), a negligible ``c0`` (below eps * max |c|: a quadratic for OpenCV) and a tiny one (a
-    cubic with a huge root)."""
-    rng = np.random.default_rng(0)
-    cases = []
-    for _ in range(1000):
-        cases.append(np.poly(rng.normal(size=3) * rng.choice([1e-3, 1.0, 1e3])) * rng.normal())
-        cases.append(rng.normal(size=4) * rng.choice([1e-3, 1.0, 1e3], 4))
-        s, d = rng.integers(-8, 9, 2) / rng.choice([1, 2, 4, 8], 2)
-        cases.append(np.poly([s, d, d]) * rng.choice([1.0, -1.0, 0.5, 3.0]))
-    for _ in range(200):
-        q = rng.integers(-5, 6, 3) / rng.choice([1, 2, 4], 3)
-        r = rng.integers(-5, 6) / 2
-        cases += [np.r_[0.0, q], np.r_[0.0, 0.0, q[1:]], np.r_[0.0, np.poly([r, r])],
-                  np.r_[rng.choice([1e-17, -1e-13, 1e-9]), rng.normal(size=3)]]
-    cases += [np.zeros(4), np.array([0.0, 0, 0, 1]), np.array([1.0, -3, 3, -1]), np.array([2.0, 0, 0, 0])]
-    return np.array(cases, dtype=np.float64)
-
-
-def test_solve_cubic_opencv_matches_cv2(device):
+@pytest.mark.parametrize("full", [False, True])
+def test_solve_cubic_opencv_matches_cv2(device, full):
     """``_solve_cubic_opencv`` finds as many real roots as ``cv2.solveCubic`` on every cubic (its
     branch is taken on OpenCV's own arithmetic), in cv2's order (three roots: smallest, largest,
     middle; a double root: the simple one first; a quadratic: the larger |q| first), with cv2's
-    values wherever cv2's roots are accurate."""
+    values wherever cv2's roots are accurate; with the rare branches skipped where no lane needs
+    them (the default paths on the CPU) and evaluated always (``full``, the capturable path)."""
     cases = _cubic_cases()
-    roots, ok = ransac._solve_cubic_opencv(torch.from_numpy(cases).to(device))
+    roots, ok = _solve_cubic_opencv(torch.from_numpy(cases).to(device), _consts(torch.device(device)), full=full)
     roots, ok = roots.cpu().numpy(), ok.cpu().numpy()
     kinds = collections.Counter()
     for c, r, o in zip(cases, roots, ok):
@@ -542,31 +451,44 @@ def test_solve_cubic_opencv_matches_cv2(device):
     assert min(kinds[k] for k in range(4)) >= 50, kinds  # every root count is covered
 
 
-def test_solve_cubic_opencv_host_check_equals_full_evaluation(monkeypatch):
-    """The CPU skips the double-root / quadratic branches when no lane needs them: same roots."""
+def test_solve_cubic_opencv_host_check_equals_full_evaluation(device, monkeypatch):
+    """The CPU skips the double-root / quadratic branches when no lane needs them: the same ``ok``
+    and, where ok, the same roots bit for bit as every branch evaluated (``full``, the capturable
+    path; and any device without free host checks), on every kind of cubic ``cv::solveCubic``
+    tells apart and on random ones (no double roots there, and a block without a rare lane)."""
+    g = torch.Generator().manual_seed(1)
+    rnd = torch.randn(20000, 4, dtype=torch.float64, generator=g) * 10.0 ** torch.randint(-3, 4, (20000, 4), generator=g)
     general = torch.randn(500, 4, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
-    for c in (general, torch.from_numpy(_cubic_cases())):
-        ref = ransac._solve_cubic_opencv(c)
-        with monkeypatch.context() as mp:
-            mp.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)
-            got = ransac._solve_cubic_opencv(c)
-        assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
+    k = _consts(torch.device(device))
+    for c, kinds in ((torch.from_numpy(_cubic_cases()), 4), (rnd, 3), (general, None)):  # 0..3 roots
+        c = c.to(device)
+        ref, ref_ok = _solve_cubic_opencv(c, k, full=True)
+        ref = torch.where(ref_ok, ref, 0.0)
+        for one_pass in (False, True):
+            with monkeypatch.context() as mp:
+                if one_pass:
+                    mp.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)
+                roots, ok = _solve_cubic_opencv(c, k)
+            assert torch.equal(ok, ref_ok) and torch.equal(torch.where(ok, roots, 0.0), ref)
+        assert kinds is None or ok.sum(1).unique().numel() == kinds
 
 
-def _unit(F: np.ndarray) -> np.ndarray:
-    F = F / np.linalg.norm(F)
-    return F * np.sign(F.flat[np.abs(F).argmax()])
-
-
-def test_7point_models_come_in_opencvs_order():
+def test_7point_models_come_in_opencvs_order(device):
     """The up to three 7-point models come in the order of ``cv2.findFundamentalMat(FM_7POINT)``:
     OpenCV's own basis of the null space (any other basis gives the same models in a random order)
-    and ``solveCubic``'s root order. Before, 2/3 of the three-model samples came in another order."""
+    and ``solveCubic``'s root order, equal to cv2's models; the capturable form (``full``: every
+    cubic branch evaluated) gives the same models bit for bit. Before, 2/3 of the three-model
+    samples came in another order."""
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 752, (400, 7, 2)).astype(np.float32)
     c = (a + rng.normal(0, 30, a.shape)).astype(np.float32)
-    F, ok, degenerate = ransac._run_7point(torch.from_numpy(np.stack([a, c], 2).astype(np.float64)))
-    assert not degenerate.any()
+    m = torch.from_numpy(np.stack([a, c], 2).astype(np.float64)).to(device)
+    k = _consts(m.device)
+    F, ok = _run_7point(m, k)
+    Ff, okf = _run_7point(m, k, full=True)
+    assert not _collinear_last(m, k).any() and ok.sum() > 600
+    assert torch.equal(ok, okf) and torch.equal(torch.where(ok[..., None], F, 0.0), torch.where(ok[..., None], Ff, 0.0))
+    F, ok = F.cpu().view(-1, 3, 3, 3), ok.cpu()
     three = 0
     for i in range(len(a)):
         Fcv, _ = cv2.findFundamentalMat(a[i], c[i], cv2.FM_7POINT)
@@ -578,73 +500,25 @@ def test_7point_models_come_in_opencvs_order():
     assert three >= 100
 
 
-def _epipolar_error(F, a, c):
-    """OpenCV's computeError: max of the squared distances to the two epipolar lines."""
-    h1, h2 = np.c_[a, np.ones(len(a))], np.c_[c, np.ones(len(c))]
-    l2, l1 = h1 @ F.T, h2 @ F
-    d = (h2 * l2).sum(1)
-    return np.maximum(d**2 / (l1[:, 0] ** 2 + l1[:, 1] ** 2), d**2 / (l2[:, 0] ** 2 + l2[:, 1] ** 2))
-
-
-def _tie_problem(seed: int, n_pencil: int = 60, n_each: int = 2, n_out: int = 16):
-    """A constructed tie. Two random fundamental matrices ``Fa``, ``Fb`` (460-px pinhole, random
-    small rotations and translations) span a pencil whose third rank-2 member is ``Fc``;
-    ``n_pencil`` correspondences lie on both epipolar lines of ``Fa`` and ``Fb`` (``x2`` = their
-    intersection), hence on every model of the pencil: any 7 of them give exactly ``Fa``, ``Fb``,
-    ``Fc``. ``n_each`` more fit ``Fa`` only, ``n_each`` fit ``Fb`` only (>= 5 px from the other
-    models' lines), ``n_out`` fit none. So ``Fa`` and ``Fb`` tie at ``n_pencil + n_each`` inliers
-    with masks that differ in ``2 n_each`` labels, and when the first good sample is a pencil one
-    (most seeds), the model kept is the first of the tied pair in the sample's model order.
-    Returns float32 ``a, c`` and the inlier counts of ``Fa, Fb, Fc`` at 1 px."""
-    rng = np.random.default_rng(seed)
-    W, H = 752, 480
-    K = np.array([[460.0, 0, 376.0], [0, 460.0, 240.0], [0, 0, 1.0]])
-    Ki = np.linalg.inv(K)
-    Fs = []
-    for _ in range(2):
-        R, _ = cv2.Rodrigues(rng.normal(0, 0.1, 3))
-        t = rng.normal(0, 1, 3)
-        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-        Fs.append(Ki.T @ tx @ R @ Ki)
-    Fa, Fb = Fs
-    # det(x Fa + (1 - x) Fb) is a cubic in x with the roots 1 (Fa) and 0 (Fb); the third is Fc's
-    xs = np.array([-1.0, 0.5, 2.0, 3.0])
-    coef = np.polyfit(xs, [np.linalg.det(x * Fa + (1 - x) * Fb) for x in xs], 3)
-    third = -coef[1] / coef[0] - 1.0  # sum of the roots = -c1 / c0
-    Fc = third * Fa + (1 - third) * Fb
-    models = (Fa, Fb, Fc)
-
-    def inside(p):
-        return (p[..., 0] > 5) & (p[..., 0] < W - 5) & (p[..., 1] > 5) & (p[..., 1] < H - 5)
-
-    x1 = rng.uniform([0, 0], [W, H], (4000, 2))
-    h1 = np.c_[x1, np.ones(len(x1))]
-    x2h = np.cross(h1 @ Fa.T, h1 @ Fb.T)
-    x2 = x2h[:, :2] / x2h[:, 2:]
-    keep = inside(x2)
-    assert keep.sum() >= n_pencil
-    sets = [(x1[keep][:n_pencil], x2[keep][:n_pencil])]
-
-    def pairs(k, fits):
-        out = []
-        while len(out) < k:
-            p, q = rng.uniform([0, 0], [W, H]), rng.uniform([0, 0], [W, H])
-            if fits is not None:  # move q onto the epipolar line of p
-                line = fits @ np.r_[p, 1.0]
-                q = np.array([q[0], -(line[0] * q[0] + line[2]) / line[1]])
-                if not inside(q):
-                    continue
-            if all(_epipolar_error(G, p[None], q[None])[0] >= 25.0 for G in models if G is not fits):
-                out.append((p, q))
-        return np.array([p for p, _ in out]), np.array([q for _, q in out])
-
-    sets += [pairs(n_each, Fa), pairs(n_each, Fb), pairs(n_out, None)]
-    a = np.concatenate([s[0] for s in sets])
-    c = np.concatenate([s[1] for s in sets])
-    perm = rng.permutation(len(a))
-    a, c = a[perm].astype(np.float32), c[perm].astype(np.float32)
-    counts = [int((_epipolar_error(G, a.astype(np.float64), c.astype(np.float64)) <= 1.0).sum()) for G in models]
-    return a, c, counts
+def test_collinear_check_is_opencvs(device):
+    """OpenCV's ``haveCollinearPoints`` for a sample's last point (some pair of the six difference
+    vectors to it has ``|d_k x d_j| <= FLT_EPSILON (|d_j|_1 + |d_k|_1)``), in either image: the same
+    decisions as a plain loop over the 15 pairs, on random samples and on constructed degenerate
+    ones (the last point on the line through two others, or on one of them)."""
+    rng = np.random.default_rng(4)
+    m = rng.uniform(0, 752, (3000, 7, 2, 2)).astype(np.float32).astype(np.float64)
+    m[:500, 6, 0] = m[:500, 2, 0] + 0.5 * (m[:500, 4, 0] - m[:500, 2, 0])  # image 1: on a line
+    m[500:1000, 6, 1] = m[500:1000, 3, 1]  # image 2: a repeated point
+    m[1000:1100, 6] = m[1000:1100, 0] + 1e-9  # both images: (nearly) repeated
+    d = m[:, :6] - m[:, 6:]
+    ref = np.zeros((len(m), 2), dtype=bool)
+    eps = np.float32(np.finfo(np.float32).eps).astype(np.float64)
+    for j in range(6):
+        for k in range(j):
+            cross = d[:, k, :, 0] * d[:, j, :, 1] - d[:, k, :, 1] * d[:, j, :, 0]
+            ref |= np.abs(cross) <= eps * (np.abs(d[:, j]).sum(-1) + np.abs(d[:, k]).sum(-1))
+    got = _collinear_last(torch.from_numpy(m).to(device), _consts(torch.device(device))).cpu().numpy()
+    assert np.array_equal(got, ref) and ref[:1100].any(-1).all() and not ref[1100:].any()
 
 
 @pytest.mark.parametrize("seed", range(10))

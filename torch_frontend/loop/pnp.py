@@ -43,7 +43,8 @@ import torch
 from .._checks import check_shape, valid_first_order
 from ..errors import DataError
 from ..geometry import R_to_quat, quat_to_R, rodrigues
-from ..ransac import _solve_cubic, ransac_update_num_iters
+from ..polynomial import solve_cubic
+from ..ransac import ransac_update_num_iters
 
 __all__ = ["PnPResult", "p3p", "pnp_ransac", "refine_pnp"]
 
@@ -218,7 +219,7 @@ def _p3p_impl(X1, X2, X3, v1, v2, v3):
     # det(D2 + g' D1) then, so the root used is always finite
     rev = c0.abs() > c3.abs()
     coeffs = torch.where(rev[..., None], torch.stack([c0, c1, c2, c3], -1), torch.stack([c3, c2, c1, c0], -1))
-    roots, r_ok = _solve_cubic(coeffs)  # (L, 3)
+    roots, r_ok = solve_cubic(coeffs)  # (L, 3)
     Dp = tuple(torch.where(rev, q, p) for p, q in zip(D1, D2))  # D0 = Dp + g Dq
     Dq = tuple(torch.where(rev, p, q) for p, q in zip(D1, D2))
     D0 = tuple(p[..., None] + roots * q[..., None] for p, q in zip(Dp, Dq))  # 6 x (L, 3 roots)

@@ -1,0 +1,86 @@
+"""OpenCV's inlier test of fundamental matrices (``FMEstimatorCallback::computeError``), for K
+models on N points at once.
+
+Convention:
+    * ``h1, h2: (B, N, 3)`` homogeneous points (:func:`_homogeneous`), ``(0, 0, 0)`` at masked-out
+      slots; models ``F: (B, K, 3, 3)`` or row-major ``(B, K, 9)``.
+    * The error of a point pair is ``max(d1^2, d2^2)``, ``dk`` the distance of the point in image k
+      to its epipolar line (px^2); an inlier has ``error <= threshold^2``. Arithmetic in float64.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .consts import _Consts
+
+
+def _homogeneous(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``(B, N, 2)`` points (zero at masked-out slots) -> ``(B, N, 3)`` homogeneous points, with
+    ``(0, 0, 0)`` at masked-out slots: their epipolar lines are degenerate (``s = 0``), so they never
+    count as inliers and have infinite error, without a mask op on the ``(B, N, K)`` score tensors."""
+    return torch.cat([x, valid[..., None].to(x.dtype)], -1)
+
+
+def _epipolar_terms(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor):
+    """Algebraic residual and line norms for K models on N points, as three batched matmuls.
+
+    ``F: (B, K, 3, 3)``, ``h1, h2: (B, N, 3)`` (see ``_homogeneous``) -> ``d2 = (x2^T F x1)^2``,
+    ``s2 = |(F x1)_xy|^2`` and ``s1 = |(F^T x2)_xy|^2``, each ``(B, N, K)``."""
+    B, K = F.shape[:2]
+    outer = (h2[..., :, None] * h1[..., None, :]).flatten(-2)  # (B, N, 9)
+    d = outer @ F.flatten(-2).transpose(-1, -2)  # (B, N, K)
+    # F x1, rows 0 and 1 of every model: columns [row0 of model 0..K-1, row1 of model 0..K-1]
+    l2 = h1 @ F[:, :, :2, :].transpose(1, 2).reshape(B, 2 * K, 3).transpose(-1, -2)  # (B, N, 2K)
+    l1 = h2 @ F[:, :, :, :2].permute(0, 3, 1, 2).reshape(B, 2 * K, 3).transpose(-1, -2)
+    l2 = l2 * l2  # x*x: much cheaper than pow/square on CPU
+    l1 = l1 * l1
+    return d * d, l1[..., :K] + l1[..., K:], l2[..., :K] + l2[..., K:]
+
+
+def _epipolar_errors(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
+    """OpenCV ``computeError``: ``max(d1^2, d2^2)`` squared point-to-epipolar-line distances,
+    ``(B, N, K)`` for ``F: (B, K, 3, 3)``; inf where a line is degenerate (and at masked-out slots)."""
+    d2, s1, s2 = _epipolar_terms(F, h1, h2)
+    smin = torch.minimum(s1, s2)
+    pos = smin > 0
+    return torch.where(pos, d2 / torch.where(pos, smin, torch.ones_like(smin)), torch.full_like(d2, float("inf")))
+
+
+def _inlier_mask(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor, thr2: float) -> torch.Tensor:
+    """``max(d1^2, d2^2) <= thr^2`` for K models on N points -> ``(B, N, K)`` bool, without divisions:
+    ``d^2 <= thr^2 * min(s1, s2)`` (and a non-degenerate line; never at a masked-out slot).
+
+    OpenCV compares ``(float)err <= (float)thr^2``; this differs only for errors within float32
+    rounding of the threshold."""
+    d2, s1, s2 = _epipolar_terms(F, h1, h2)
+    smin = torch.minimum(s1, s2)
+    bound = smin if thr2 == 1.0 else smin * thr2  # x * 1.0 == x: skip a full pass (VINS: 1 px)
+    return (d2 <= bound) & (smin > 0)
+
+
+def _score_rows(F: torch.Tensor, k: _Consts) -> torch.Tensor:
+    """``F (B, K, 9)`` row-major models -> ``(B, 5, K, 9)`` rows mapping a point pair's outer product
+    ``h2 (x) h1`` to ``x2^T F x1, (F x1)_0, (F x1)_1, (F^T x2)_0, (F^T x2)_1`` (a 0/1 selection: exact),
+    so that one batched matmul scores every model on every point (five planes: contiguous passes)."""
+    B, K = F.shape[:2]
+    return (F.reshape(B * K, 9) @ k.select).view(B, K, 5, 9).transpose(1, 2).contiguous()
+
+
+def _score_terms(rows: torch.Tensor, outer: torch.Tensor):
+    """``rows (B, 5, K, 9)`` (:func:`_score_rows`, or a slice of it) on ``outer (B, N, 9)`` ->
+    ``d2 = (x2^T F x1)^2`` and ``smin = min(|(F x1)_xy|^2, |(F^T x2)_xy|^2)`` (``_epipolar_terms``'),
+    each ``(B, K, N)``; both 0 at masked-out slots (their outer product is 0)."""
+    B, _, K = rows.shape[:3]
+    o = torch.bmm(rows.reshape(B, 5 * K, 9), outer.transpose(1, 2))
+    o = o.mul_(o).view(B, 5, K, outer.shape[1])
+    l2 = o[:, 1] + o[:, 2]
+    return o[:, 0], torch.minimum(o[:, 3] + o[:, 4], l2, out=l2)
+
+
+def _outer_products(x12: torch.Tensor, eff: torch.Tensor) -> torch.Tensor:
+    """``h2 (x) h1`` of every point pair, ``(B, N, 9)`` (entry ``3 i + j = h2_i h1_j``), from
+    ``x12 (B, N, 4)`` float64 and ``eff (B, N)``; 0 at masked-out slots (:func:`_homogeneous`)."""
+    B, N = eff.shape
+    h = torch.cat([x12.view(B, N, 2, 2), eff[:, :, None, None].expand(B, N, 2, 1).to(x12.dtype)], -1)
+    return (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)
