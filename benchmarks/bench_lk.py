@@ -5,7 +5,7 @@ streams (consecutive-frame pairs of the sample sequence, reused cyclically), win
 30 iterations / eps 0.01, uint8 input (fixed-point emulation, OpenCV's default path). Both sides
 build their pyramids inside the call. OpenCV has no batch: it runs the B pairs one after the
 other. ``torch`` runs eager (and, with ``--compile``, with ``torch.compile`` of the per-iteration
-kernel, ``torch_frontend.lk.compile_step``; a compile failure is caught and reported in the table).
+kernel, ``track_lk(..., compile_step=True)``; a compile failure is caught and reported in the table).
 Two extra row groups: ``pyr`` = LK on pyramids built beforehand (how the tracker calls it: the
 previous frame's pyramid and its padded levels are kept, the next one's levels are padded inside
 the call; OpenCV's column is its usual call, which builds them, as its Python binding takes no
@@ -38,7 +38,6 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torch_frontend import lk as lk_mod  # noqa: E402
 from torch_frontend.lk import track_lk  # noqa: E402
 from torch_frontend.pyramid import build_pyramid  # noqa: E402
 
@@ -91,12 +90,7 @@ def main(argv=None):
     modes = ["eager"] + (["compile"] if args.compile and not args.no_compile else [])
     rows, notes = [], []
     for mode in modes:
-        if mode == "compile":
-            try:
-                lk_mod.compile_step(True)
-            except Exception as e:  # noqa: BLE001 - report, keep the eager numbers
-                notes.append(f"torch.compile unavailable: {type(e).__name__}: {e}")
-                break
+        kw = dict(compile_step=mode == "compile")  # per call: the compiled iteration kernel
         for n in (150, 1000):
             for B in (1, 8, 64):
                 if args.quick and B == 64 and n == 1000:
@@ -113,7 +107,7 @@ def main(argv=None):
 
                 row = {"mode": mode, "N": n, "B": B}
                 try:
-                    t_torch, reps = _time(lambda prev=prev, nxt=nxt, pts=pts: track_lk(prev, nxt, pts),
+                    t_torch, reps = _time(lambda prev=prev, nxt=nxt, pts=pts, kw=kw: track_lk(prev, nxt, pts, **kw),
                                           args.repeat, device)
                     row.update(torch_ms=round(t_torch, 2), torch_reps=reps)
                 except Exception as e:  # noqa: BLE001 - e.g. a compile failure at first call
@@ -125,7 +119,6 @@ def main(argv=None):
                 row["ratio"] = None if row["torch_ms"] is None else round(row["torch_ms"] / t_cv, 2)
                 rows.append(row)
                 print(row, flush=True)
-    lk_mod.compile_step(False)
 
     # tracker-style calls (pyramids built beforehand) and the pyramid build itself, N = 150
     n = 150

@@ -157,9 +157,9 @@ def _lk_nan_guess(ctx):
     pts = torch.tensor([[[100.0, 100.0], [200.0, 150.0], [300.0, 200.0]]])
     guess = pts.clone()
     guess[0, 1] = float("nan")
-    for early_exit in (True, False):
-        nxt, st = tf.track_lk(A, B, pts, init_pts=guess, early_exit=early_exit)
-        ref, st_ref = tf.track_lk(A, B, pts, init_pts=pts, early_exit=early_exit)
+    for capturable in (False, True):
+        nxt, st = tf.track_lk(A, B, pts, init_pts=guess, capturable=capturable)
+        ref, st_ref = tf.track_lk(A, B, pts, init_pts=pts, capturable=capturable)
         assert st.tolist() == [[True, False, True]] and st_ref.tolist() == [[True, True, True]]
         assert torch.equal(nxt[0, [0, 2]], ref[0, [0, 2]])  # the other lanes are untouched
         assert torch.isfinite(nxt).all()

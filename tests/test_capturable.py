@@ -88,7 +88,7 @@ def _run_both(cfg, steps, B, mode="mono", actives=None, right=None, device="cpu"
 def test_capturable_default_follows_the_device():
     assert FeatureTracker(CFG).capturable is False
     assert FeatureTracker(CFG, capturable=True).params.capturable is True
-    assert FeatureTracker(CFG, capturable=True).params.lk_options.early_exit is False
+    assert FeatureTracker(CFG, capturable=True).params.lk_options.capturable is True
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -162,7 +162,7 @@ def test_capturable_step_has_no_syncs_and_a_launch_count_independent_of_b():
 def test_the_default_cpu_path_is_unchanged_by_the_flag():
     """capturable=False is the tuned path: LK with early exit (host syncs allowed there)."""
     p = TrackerParams.from_config(tf.load_config(CFG))
-    assert p.capturable is False and p.lk_options.early_exit is True
+    assert p.capturable is False and p.lk_options.capturable is False
 
 
 def _explain(B=1):

@@ -214,8 +214,9 @@ def test_gftt_selection_property(seed, h, w, levels, md, max_corners, use_mask):
     resp = rng.integers(0, levels, (2, h, w)).astype(np.float32)
     mask = (rng.random((2, h, w)) > 0.3).astype(np.uint8) if use_mask else None
     mc = torch.tensor([max_corners, max(1, max_corners // 2)])
-    pts, valid = _gftt_from_response(torch.from_numpy(resp), mc, 0.01, md,
-                                     None if mask is None else torch.from_numpy(mask), None)
+    pts, valid, overflow = _gftt_from_response(torch.from_numpy(resp), mc, 0.01, md,
+                                               None if mask is None else torch.from_numpy(mask), None)
+    assert overflow is None  # the default path is exact
     for b in range(2):
         ours = [tuple(p) for p in pts[b][valid[b]].long().tolist()]
         ref = _reference_select(resp[b], int(mc[b]), 0.01, md, None if mask is None else mask[b])
@@ -248,7 +249,7 @@ def test_gftt_selection_signed_responses(dtype):
     for trial in range(6):
         r = (rng.integers(-40, 40, (2, 23, 31)) / 4.0 - (60.0 if trial % 2 else 0.0)).astype(np.float32)
         q = [0.0, 0.01, -0.5][trial % 3]
-        pts, valid = _gftt_from_response(torch.from_numpy(r).to(dtype), 30, q, 3, None, None)
+        pts, valid, _ = _gftt_from_response(torch.from_numpy(r).to(dtype), 30, q, 3, None, None)
         for b in range(2):
             ours = [tuple(int(c) for c in p) for p in pts[b][valid[b]].tolist()]
             assert ours == _reference_select(r[b], 30, q, 3, None)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import TEST_DATA, load_gray, sample_frames
+from tests.conftest import REPO, TEST_DATA, load_gray, sample_frames
 from torch_frontend.errors import ConfigError
 from torch_frontend.lk import track_lk
 from torch_frontend.pyramid import build_pyramid
@@ -137,19 +137,23 @@ STEREO_BITS, STEREO_FB_BITS, WARP_BITS = 0.7, 0.8, 0.62
 MOTORCYCLE_BITS, MOTORCYCLE_FB_BITS, INITIAL_FLOW_BITS = 0.53, 0.67, 0.83
 
 
-@pytest.mark.parametrize("fixed_point,early_exit", [(None, True), (False, True), (None, False), (False, False)],
-                         ids=["fixed_point", "float_guard", "static", "static_float_guard"])
-def test_euroc_temporal_vs_cv2_batched(cam0, fixed_point, early_exit):
+# the capturable rows repeat the default rows' figures (the paths are equal bit for bit:
+# tests/test_lk_capturable.py), so they only run with the slow tests
+@pytest.mark.parametrize("fixed_point,capturable", [
+    (None, False), (False, False),
+    pytest.param(None, True, marks=pytest.mark.slow), pytest.param(False, True, marks=pytest.mark.slow)],
+    ids=["fixed_point", "float_guard", "capturable", "capturable_float_guard"])
+def test_euroc_temporal_vs_cv2_batched(cam0, fixed_point, capturable):
     """4 consecutive-frame pairs (one with a 3-frame gap) as B=4 streams in one call. At least 99 %
-    of the points are bit-identical to OpenCV's, on the tuned (early-exit) and on the static
-    (capturable) path; the ``float_guard`` cases show that the bar fails when the fixed-point
+    of the points are bit-identical to OpenCV's, on the default (eager) and on the capturable
+    path; the ``float_guard`` cases show that the bar fails when the fixed-point
     emulation is off (float interpolation still passes the distance bars)."""
     pairs = [(0, 1), (7, 8), (15, 16), (20, 23)]
     pts = [gftt(cam0[i]) for i, _ in pairs]
     n = min(len(p) for p in pts)
     pts = [p[:n] for p in pts]
     out, st = track_lk(t_img(*[cam0[i] for i, _ in pairs]), t_img(*[cam0[j] for _, j in pairs]), t_pts(*pts),
-                       fixed_point=fixed_point, early_exit=early_exit)
+                       fixed_point=fixed_point, capturable=capturable)
     assert out.shape == (4, n, 2) and st.shape == (4, n) and st.dtype == torch.bool
     allo, alls, allr, allsr = [], [], [], []
     for b, (i, j) in enumerate(pairs):
@@ -289,7 +293,7 @@ def test_initial_flow_and_small_image_cap(cam0):
 
 
 def test_batch_equals_separate_calls_and_modes(cam0, device, monkeypatch):
-    """B streams x N points in one call == B separate calls; pyramid reuse, early_exit=False and
+    """B streams x N points in one call == B separate calls; pyramid reuse, capturable=True and
     padded invalid lanes change nothing."""
     idx = [(0, 1), (9, 10), (17, 19)]
     crops = [(slice(100, 260), slice(200, 420))] * 3
@@ -329,7 +333,7 @@ def test_batch_equals_separate_calls_and_modes(cam0, device, monkeypatch):
         assert (0, 22, 22, pts.dtype) in qb._padded and qb._padded[(0, 22, 22, pts.dtype)].shape[0] == 3
     # pyramids built once (as the tracker keeps them) and the sync-free fixed-iteration mode
     pa, pb = build_pyramid(tA, 3), build_pyramid(tB, 3, with_gradients=False)
-    o2, s2 = track_lk(pa, pb, pts, valid, early_exit=False)
+    o2, s2 = track_lk(pa, pb, pts, valid, capturable=True)
     assert torch.equal(s2, st) and (o2 - out).abs().max() <= 1e-5
 
 
@@ -444,3 +448,55 @@ def test_bad_inputs():
     # textureless image: every point fails the eigenvalue test
     out, st = track_lk(img, img, torch.full((1, 5, 2), 20.0))
     assert not st.any() and torch.isfinite(out).all()
+
+
+def test_early_exit_keyword_is_deprecated(cam0):
+    """The old ``early_exit`` keyword still works, as ``capturable = not early_exit``, with a
+    ``DeprecationWarning``."""
+    a, b = (np.ascontiguousarray(x[150:230, 300:420]) for x in cam0[:2])
+    p = t_pts(gftt(a, 20, 6))
+    kw = dict(max_level=1)
+    for early_exit in (True, False):
+        with pytest.warns(DeprecationWarning, match="capturable"):
+            got = track_lk(t_img(a), t_img(b), p, early_exit=early_exit, **kw)
+        ref = track_lk(t_img(a), t_img(b), p, capturable=not early_exit, **kw)
+        assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1]) and ref[1].sum() >= 10
+    with pytest.warns(DeprecationWarning):  # early_exit decides when both are given
+        got = track_lk(t_img(a), t_img(b), p, capturable=True, early_exit=True, **kw)
+    assert torch.equal(got[0], track_lk(t_img(a), t_img(b), p, capturable=False, **kw)[0])
+
+
+def test_compile_step_is_per_call_and_per_tracker():
+    """The compiled iteration kernel is an option of the call (``LKOptions.compile_step``), set by
+    ``FeatureTracker.compile()`` on a default-path tracker in that tracker's params only: another
+    tracker, and every other call, keep the eager kernel."""
+    from torch_frontend import FeatureTracker
+    from torch_frontend.lk import LKOptions, eager
+
+    assert LKOptions().compile_step is False and eager._step_kernel(LKOptions()) is eager._lk_step
+    o = LKOptions(compile_step={"backend": "eager"})
+    assert o.compile_step == (("backend", "eager"), ("dynamic", True)) and hash(o) == hash(LKOptions(**o.__dict__))
+    assert LKOptions(compile_step=True).compile_step == (("dynamic", True),)
+    with pytest.raises(ConfigError, match="compile_step"):
+        LKOptions(compile_step={"options": {"a": 1}})  # not hashable
+    a, b = FeatureTracker(REPO / "configs" / "euroc.yaml"), FeatureTracker(REPO / "configs" / "euroc.yaml")
+    a.compile(backend="eager")
+    assert a.params.lk_options.compile_step == (("backend", "eager"), ("dynamic", True))
+    assert b.params.lk_options.compile_step is False and a.params.capturable is False
+    assert eager._step_kernel(b.params.lk_options) is eager._lk_step
+    assert eager._step_kernel(a.params.lk_options) is eager._step_kernel(a.params.lk_short_options) \
+        is not eager._lk_step  # one compiled kernel per setting
+    hash(a.params)  # the params stay hashable (static for the compiler)
+    a.compile(False)
+    assert a.params.lk_options.compile_step is False and a.params == b.params
+
+
+@pytest.mark.slow
+def test_compiled_step_gives_the_same_results(cam0):
+    """A call with the compiled iteration kernel (dynamo, eager backend: ~7 s) equals the eager call
+    bit for bit."""
+    a, b = (np.ascontiguousarray(x[150:230, 300:420]) for x in cam0[:2])
+    p = t_pts(gftt(a, 20, 6))
+    ref = track_lk(t_img(a), t_img(b), p, max_level=1)
+    got = track_lk(t_img(a), t_img(b), p, max_level=1, compile_step={"backend": "eager"})
+    assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1]) and ref[1].sum() >= 10

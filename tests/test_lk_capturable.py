@@ -1,6 +1,6 @@
-"""The static LK path (``LKOptions(early_exit=False)``, the capturable tracker's): the same results as
-the tuned early-exit path bit for bit, no host sync, a launch count independent of the batch, the
-iteration budget and its overflow flag, gradients."""
+"""The capturable LK path (``LKOptions(capturable=True)``, the capturable tracker's): the same results
+as the default (eager, early-exit) path bit for bit, no host sync, a launch count independent of the
+batch, the iteration budget and its overflow flag, gradients."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from torch_frontend.errors import ConfigError
 from torch_frontend.pyramid import build_pyramid
 from torch_frontend.testing.dispatch_count import OpCounter
 
-#: aten ops (kernels) per iteration of the static path (fixed point, float32 points, no gradient):
+#: aten ops (kernels) per iteration of the capturable path (fixed point, float32 points, no gradient):
 #: searchsorted, gather, 4 for the weights, baddbmm + floor, 2 for b, 4 for the step, 3 for the
 #: step test, 2 for the oscillation test, 1 ``all``, 1 update (see the lk module notes)
 OPS_PER_ITERATION = 21
@@ -61,14 +61,20 @@ def _batch(frames, B=3, n=48):
 
 
 def _both(P, Q, pts, valid, init, opts, **kw):
-    e = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, early_exit=True, **kw),
-                          return_overflow=True)
-    s = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, early_exit=False, **kw),
-                          return_overflow=True)
+    """``LKResult`` of the default and of the capturable path: the overflow flag is a ``(B,)``
+    tensor on the capturable path always, on the default one when some budget is below
+    ``max_iters`` (else None: exact)."""
+    e = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, capturable=False, **kw))
+    s = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, capturable=True, **kw))
+    assert isinstance(e, lk.LKResult) and isinstance(s, lk.LKResult)
+    assert (e.overflow is None) == (not dataclasses.replace(opts, **kw).inexact)
+    assert s.overflow is not None and s.overflow.shape == (pts.shape[0],)
     return e, s
 
 
 def _assert_same(e, s):
+    """Bit for bit (a default-path overflow of None is the all-False flag: the full budget)."""
+    e = e._replace(overflow=torch.zeros_like(s.overflow) if e.overflow is None else e.overflow)
     for name, a, b in zip(("next_pts", "status", "overflow"), e, s):
         assert a.dtype == b.dtype and a.shape == b.shape, name
         assert torch.equal(a.nan_to_num(7e7) if a.is_floating_point() else a,
@@ -78,7 +84,7 @@ def _assert_same(e, s):
 
 @pytest.mark.parametrize("mode", ["uint8", "float", "fixed_on_float"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-def test_static_equals_early_exit(frames, device, dtype, mode):
+def test_capturable_equals_eager(frames, device, dtype, mode):
     """Bit for bit, a mixed batch and one stream, without and with initial guesses (NaN and inf ones
     too), padded lanes, points at and beyond the borders: fixed point (8-bit images), float
     interpolation (float images) and fixed point on float images, float32 and float64 points."""
@@ -97,7 +103,7 @@ def test_static_equals_early_exit(frames, device, dtype, mode):
                                            (P.select(slice(2, 3)), Q.select(slice(2, 3)), pts[2:], valid[2:], None)]):
         e, s = _both(pp, qq, x, v, g, opts)
         _assert_same(e, s)
-        assert not e[2].any()  # full budget: exact
+        assert e.overflow is None and not s.overflow.any()  # full budget: exact
         if i == 0:
             assert e[1].sum() > 0.6 * e[1].numel() and not e[1].all()  # tracks, and lanes lost at the borders
     # one level, a non-square window, eps 0 (steps to the cap), few iterations
@@ -105,7 +111,7 @@ def test_static_equals_early_exit(frames, device, dtype, mode):
         _assert_same(*_both(P, Q, pts, valid, init, dataclasses.replace(opts, **kw)))
 
 
-def test_static_in_reference_forms_and_forward_backward(frames):
+def test_capturable_in_reference_forms_and_forward_backward(frames):
     """The reference (differentiable) forms and the backward check give the same results too."""
     from torch_frontend import _tuning
 
@@ -118,10 +124,14 @@ def test_static_in_reference_forms_and_forward_backward(frames):
         _assert_same(ref, _both(P, Q, pts, valid, None, opts)[1])
     out, st = ref[:2]
     for lv, from_start in ((1, True), (3, False)):
-        fb = [lk._forward_backward_impl(P, Q, pts, out, st, dataclasses.replace(opts, early_exit=ee), lv, 0.5,
-                                        from_start, return_overflow=True) for ee in (True, False)]
-        assert torch.equal(fb[0][0], fb[1][0]) and not fb[1][1].any()
-        assert torch.equal(fb[0][0], lk._forward_backward_impl(P, Q, pts, out, st, opts, lv, 0.5, from_start))
+        # the path by the keyword (it overrides opts.capturable) and by the options
+        fb = [lk._forward_backward_impl(P, Q, pts, out, st, opts, lv, 0.5, from_start, capturable=c) for c in (False, True)]
+        assert isinstance(fb[0], lk.FlowBackResult) and fb[0].overflow is None
+        assert torch.equal(fb[0].status, fb[1].status) and not fb[1].overflow.any()
+        assert torch.equal(fb[0].status, lk._forward_backward_impl(P, Q, pts, out, st, opts, lv, 0.5, from_start).status)
+        on_opts = lk._forward_backward_impl(P, Q, pts, out, st, dataclasses.replace(opts, capturable=True), lv, 0.5,
+                                            from_start)
+        assert torch.equal(on_opts.status, fb[1].status) and torch.equal(on_opts.overflow, fb[1].overflow)
 
 
 def test_budget_and_overflow(frames):
@@ -179,11 +189,11 @@ def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
         pts = torch.from_numpy(np.stack([p] * B)).to(dtype)
         valid = torch.ones(pts.shape[:2], dtype=torch.bool)
         for budget in (2, 3) if B > 1 else (2, 3, None):
-            opts = lk.LKOptions(early_exit=False, iter_budget=budget)
+            opts = lk.LKOptions(capturable=True, iter_budget=budget)
 
             def call(P, Q, pts, valid, opts):
-                out, st, ov = lk._track_lk_impl(P, Q, pts, valid, pts, opts, return_overflow=True)
-                return lk._forward_backward_impl(P, Q, pts, out, st, opts, 1, 0.5, True, return_overflow=True)
+                out, st, ov = lk._track_lk_impl(P, Q, pts, valid, pts, opts)
+                return lk._forward_backward_impl(P, Q, pts, out, st, opts, 1, 0.5, True)
 
             call(P, Q, pts, valid, opts)  # warm-up: caches
             with OpCounter() as c:
@@ -202,8 +212,8 @@ def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
 
 @pytest.mark.parametrize("fixed", [False, True], ids=["float", "fixed_point"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-def test_static_gradients(frames, device, dtype, fixed):
-    """Gradients of the static path w.r.t. the points are those of the early-exit path bit for bit;
+def test_capturable_gradients(frames, device, dtype, fixed):
+    """Gradients of the capturable path w.r.t. the points are those of the default path bit for bit;
     w.r.t. float images they are equal to rounding (allclose, ~1e-7 relative in float32): the backward
     adds the per-iteration window gradients into the images in another order (all lanes every
     iteration vs the compacted lanes)."""
@@ -213,9 +223,9 @@ def test_static_gradients(frames, device, dtype, fixed):
     p = torch.from_numpy(p + np.float32([0.37, 0.21])).to(device, dtype)[None]
     c = torch.randn(p.shape, generator=torch.Generator().manual_seed(0), dtype=dtype).to(device)
     res = []
-    for ee in (True, False):
+    for cap in (False, True):
         A, B, X = a.clone().requires_grad_(), b.clone().requires_grad_(), p.clone().requires_grad_()
-        out, st = lk.track_lk(A, B, X, max_level=1, early_exit=ee, fixed_point=fixed)
+        out, st = lk.track_lk(A, B, X, max_level=1, capturable=cap, fixed_point=fixed)
         res.append((out.detach(), st) + torch.autograd.grad((out * c).sum(), (A, B, X)))
     (o1, s1, ga1, gb1, gp1), (o2, s2, ga2, gb2, gp2) = res
     assert torch.equal(o1, o2) and torch.equal(s1, s2) and s1.sum() >= 8

@@ -1,9 +1,9 @@
-"""``track_lk`` under ``torch.func`` and activation checkpointing (issue 19, item 3).
+"""``track_lk`` under ``torch.func`` and activation checkpointing.
 
 * ``vmap`` over an outer batch ``V`` (images ``(V, B, 1, H, W)``, points ``(V, B, N, 2)``, also with
   shared images ``in_dims=None``, mixed, nested, and a pyramid closed over) gives the per-``v``
-  calls' values bit for bit (the vmapped dimension is folded into the call, see
-  ``lk._track_lk_transformed``);
+  calls' values bit for bit (the vmapped dimension is folded into the call through public
+  ``autograd.Function`` gateways, see ``torch_frontend.lk.transforms``);
 * ``grad`` / ``jacrev`` through ``vmap`` equal autograd of the flattened call exactly;
 * forward mode (``jvp``, ``jacfwd``, ``hessian``, ``torch.autograd.forward_ad`` dual tensors) w.r.t.
   the points and float images equals the reverse-mode J v to float64 precision, both grad modes,
@@ -24,6 +24,7 @@ from torch.utils.checkpoint import checkpoint
 
 from tests.conftest import load_gray, sample_frames
 from torch_frontend import lk
+from torch_frontend._cache import holds_plain_tensors
 from torch_frontend.lk import track_lk
 from torch_frontend.pyramid import build_pyramid
 
@@ -70,16 +71,16 @@ def _equal(a, b):
 
 
 # ---------------------------------------------------------------------- vmap (values)
-@pytest.mark.parametrize("early_exit", [True, False], ids=["early_exit", "static"])
+@pytest.mark.parametrize("capturable", [False, True], ids=["eager", "capturable"])
 @pytest.mark.parametrize("kind", ["uint8", "float64"])
-def test_vmap_outer_batch_bit_for_bit(data, kind, early_exit, device):
+def test_vmap_outer_batch_bit_for_bit(data, kind, capturable, device):
     I, J, p = (x.to(device) for x in data)
     if kind == "float64":
         I, J = I.double(), J.double()
     valid = torch.ones(p.shape[:-1], dtype=torch.bool, device=device)
     valid[1, 0, 2] = False
     init = p + torch.tensor([0.75, -0.5], dtype=p.dtype, device=device)
-    kw = dict(max_level=LEVELS, early_exit=early_exit)
+    kw = dict(max_level=LEVELS, capturable=capturable)
 
     def f(a, b, q, v, g):
         return track_lk(a, b, q, v, init_pts=g, forward_backward=True, **kw)
@@ -139,9 +140,9 @@ def test_grad_and_jacrev_through_vmap(data, mode):
 
 
 # ---------------------------------------------------------------------- forward mode
-@pytest.mark.parametrize("early_exit", [True, False], ids=["early_exit", "static"])
+@pytest.mark.parametrize("capturable", [False, True], ids=["eager", "capturable"])
 @pytest.mark.parametrize("mode", MODES)
-def test_jvp_matches_reverse(data, mode, early_exit, device):
+def test_jvp_matches_reverse(data, mode, capturable, device):
     """jvp w.r.t. points and both float images = reverse-mode J v (float64); jacfwd = jacrev; dual
     tensors of ``torch.autograd.forward_ad`` alike; the primal is the plain call's value."""
     I, J, p = (x[0].double().to(device) for x in data)
@@ -149,7 +150,7 @@ def test_jvp_matches_reverse(data, mode, early_exit, device):
     tI, tJ, tp = (torch.randn(x.shape, generator=gen, dtype=torch.float64).to(device) for x in (I, J, p))
 
     def f(a, b, q):
-        return track_lk(a, b, q, max_level=LEVELS, early_exit=early_exit, grad_mode=mode, forward_backward=True)[0]
+        return track_lk(a, b, q, max_level=LEVELS, capturable=capturable, grad_mode=mode, forward_backward=True)[0]
 
     prim, tan = jvp(f, (I, J, p), (tI, tJ, tp))
     Jr = jacrev(f, argnums=(0, 1, 2))(I, J, p)
@@ -210,40 +211,31 @@ def test_vmap_over_derivative_raises(data):
         vmap(lambda a, b, q: jvp(lambda z: loss(a, b, z), (q,), (q,))[1])(I, J, p)
 
 
-def _wrapped(x):
-    F = torch._C._functorch
-    if isinstance(x, torch.Tensor):
-        return F.is_functorch_wrapped_tensor(x) or F.is_batchedtensor(x)
-    if isinstance(x, (tuple, list)):
-        return any(_wrapped(t) for t in x)
-    if isinstance(x, dict):
-        return any(_wrapped(t) for t in x.values())
-    return False
-
-
 def test_caches_keep_plain_tensors(data):
     """Constants first built under grad / jvp are plain tensors (a wrapped one would outlive its
     transform: a later nested transform failed with functorch's "escaped?" assertion); a given
     pyramid's padded-level cache is not written under a transform."""
     I, J, p = data[0][0].double(), data[1][0].double(), data[2][0]
-    caches = [lk._level_tables, lk._win_consts, lk._level_offsets, lk._lane_index, lk._static_tables,
-              lk._static_consts, lk._patch_offsets]
+    caches = [lk._level_tables, lk._win_consts, lk._level_offsets, lk._lane_index, lk._capturable_tables,
+              lk._capturable_consts, lk._patch_offsets]
     for c in caches:
         c.cache_clear()
     P, Q = build_pyramid(I, LEVELS), build_pyramid(J, LEVELS)
     n0 = (len(P._padded), len(Q._padded))
-    for ee in (True, False):
-        def f(q, ee=ee):
-            return track_lk(P, Q, q, max_level=LEVELS, early_exit=ee, grad_mode="implicit")[0]
+    for cap in (False, True):
+        def f(q, cap=cap):
+            return track_lk(P, Q, q, max_level=LEVELS, capturable=cap, grad_mode="implicit")[0]
 
         jvp(f, (p,), (torch.ones_like(p),))
         grad(lambda q: f(q).sum())(p)
+    assert all(c.cache_stats().size > 0 for c in caches[:4] + caches[-1:])  # built under the transforms
+    assert any(c.cache_stats().rebuilt > 0 for c in caches)  # ... as plain tensors, in the builder thread
     dev = p.device
-    misses = lk._win_consts.cache_info().misses + lk._level_tables.cache_info().misses
+    misses = lk._win_consts.cache_stats().misses + lk._level_tables.cache_stats().misses
     held = [lk._win_consts(21, 21, torch.float64, dev), lk._level_tables(72, 96, 21, 21, torch.float64, dev),
             lk._lane_index(1, p.shape[1], dev), lk._patch_offsets(96 + 44, 21, 21, dev)]
-    assert lk._win_consts.cache_info().misses + lk._level_tables.cache_info().misses == misses  # hits
-    assert not _wrapped(held)
+    assert lk._win_consts.cache_stats().misses + lk._level_tables.cache_stats().misses == misses  # hits
+    assert holds_plain_tensors(held)
     assert (len(P._padded), len(Q._padded)) == n0
 
     def energy(q):

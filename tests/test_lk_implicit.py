@@ -19,7 +19,7 @@ import torch
 from tests._lk_reference import converged_lk
 from tests.conftest import load_gray, sample_frames, shared_data_or_skip
 from torch_frontend.errors import ConfigError
-from torch_frontend.lk import LKOptions, _track_lk_impl, track_lk
+from torch_frontend.lk import LKOptions, _lk_pass, _track_lk_impl, track_lk
 from torch_frontend.pyramid import build_pyramid
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
@@ -54,29 +54,39 @@ def _points(img, n=150, margin=WIN + 8):
 
 def _converged(P, Q, pts, opts):
     """status & not capped at level 0 (the forward's own convergence), (N,) bool."""
-    capped = []
     with torch.no_grad():
-        out, st = _track_lk_impl(P, Q, pts, torch.ones(pts.shape[:2], dtype=torch.bool), None, opts, False, capped)
-    return out, (st & ~capped[0].view(st.shape))[0]
+        out, st, _, capped = _lk_pass(P, Q, pts, torch.ones(pts.shape[:2], dtype=torch.bool), None, opts,
+                                      opts.capturable, want_capped=True)
+    return out, (st & ~capped.view(st.shape))[0]
+
+
+#: points per LK call in ``_jacobians``: each backward pass costs the lanes of its call, and every lane
+#: is computed by the same per-lane code whatever the lane set (the values do not depend on it)
+JACOBIAN_CHUNK = 16
 
 
 def _jacobians(mode, I, J, pts, dirI, dirJ, opts):
     """Per point: d out / d pts (m, 2, 2) and the directional derivatives of out along the image
-    directions dirI, dirJ (m, 2, 2: output x [I, J])."""
+    directions dirI, dirJ (m, 2, 2: output x [I, J]), one reverse pass per point and coordinate
+    (the points tracked in calls of ``JACOBIAN_CHUNK``)."""
     Ig, Jg, pg = I.clone().requires_grad_(), J.clone().requires_grad_(), pts.clone().requires_grad_()
     P, Q = build_pyramid(Ig, opts.max_level, False, False), build_pyramid(Jg, opts.max_level, False, False)
-    out, _ = _track_lk_impl(P, Q, pg, torch.ones(pts.shape[:2], dtype=torch.bool), None,
-                            LKOptions(**{**opts.__dict__, "grad_mode": mode}))
+    o = LKOptions(**{**opts.__dict__, "grad_mode": mode})
     m = pts.shape[1]
+    outs = []
     Jp = torch.zeros(m, 2, 2, dtype=torch.float64)
     Jd = torch.zeros(m, 2, 2, dtype=torch.float64)
-    for i in range(m):
-        for c in range(2):
-            gI, gJ, gp = torch.autograd.grad(out[0, i, c], (Ig, Jg, pg), retain_graph=True, allow_unused=True)
-            Jp[i, c] = gp[0, i]
-            Jd[i, c, 0] = (gI * dirI).sum()
-            Jd[i, c, 1] = (gJ * dirJ).sum()
-    return out.detach(), Jp, Jd
+    for s0 in range(0, m, JACOBIAN_CHUNK):
+        q = pg[:, s0:s0 + JACOBIAN_CHUNK]
+        out = _track_lk_impl(P, Q, q, torch.ones(q.shape[:2], dtype=torch.bool), None, o).pts
+        outs.append(out.detach())
+        for i in range(out.shape[1]):
+            for c in range(2):
+                gI, gJ, gp = torch.autograd.grad(out[0, i, c], (Ig, Jg, pg), retain_graph=True, allow_unused=True)
+                Jp[s0 + i, c] = gp[0, s0 + i]
+                Jd[s0 + i, c, 0] = (gI * dirI).sum()
+                Jd[s0 + i, c, 1] = (gJ * dirJ).sum()
+    return torch.cat(outs, 1), Jp, Jd
 
 
 def _reference(I, J, pts, q, dirI, dirJ, h_pts=1e-4, h_img=1e-2):
@@ -154,17 +164,17 @@ def _smooth_pair(H=48, W=48, shift=(0.7, -0.4)):
     return img(0, 0)[None, None], img(*shift)[None, None]
 
 
-@pytest.mark.parametrize("early_exit", [True, False])
+@pytest.mark.parametrize("capturable", [False, True])
 @pytest.mark.parametrize("uint8", [True, False])
-def test_values_identical_to_unrolled(early_exit, uint8):
+def test_values_identical_to_unrolled(capturable, uint8):
     fr = [load_gray(p) for p in sample_frames("cam0")[:2]]
     pts = torch.from_numpy(cv2.goodFeaturesToTrack(fr[0], 200, 0.01, 8).reshape(1, -1, 2).astype(np.float32))
     I, J = (torch.from_numpy(f)[None, None] for f in fr)
     if not uint8:
         I, J = I.float().requires_grad_(), J.float().requires_grad_()
     p = pts.clone().requires_grad_()
-    ref = track_lk(I.detach(), J.detach(), pts, early_exit=early_exit)
-    out, st = track_lk(I, J, p, early_exit=early_exit, grad_mode="implicit")
+    ref = track_lk(I.detach(), J.detach(), pts, capturable=capturable)
+    out, st = track_lk(I, J, p, capturable=capturable, grad_mode="implicit")
     assert out.grad_fn is not None
     assert torch.equal(out.detach(), ref[0]) and torch.equal(st, ref[1])
     (g,) = torch.autograd.grad(out[st].sum(), p)
@@ -185,7 +195,7 @@ def test_gradcheck_and_gradgradcheck_attach():
     def solve(I, J, p):
         P, Q = Pyramid([I], None, False), Pyramid([J], None, False)
         with torch.no_grad():  # converge: the library's LK, then Newton steps of the reference
-            out, st = _track_lk_impl(P, Q, p.detach(), torch.ones(1, 2, dtype=torch.bool), None, opts)
+            out, st, _ = _track_lk_impl(P, Q, p.detach(), torch.ones(1, 2, dtype=torch.bool), None, opts)
             q, _ = converged_lk(I[0, 0].detach().numpy(), J[0, 0].detach().numpy(), p[0].detach().numpy(),
                                 out[0].numpy(), (7, 7))
         res, ok = _implicit_attach(P, Q, p, torch.from_numpy(q)[None], st, opts)
@@ -250,7 +260,7 @@ def test_zero_gradient_lost_capped_nan_and_memory():
 
         with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
             track_lk(Ig, Jg, pts[:, [0, 3]], win_size=9, max_level=1, max_iters=iters, eps=0.0,
-                     early_exit=False, grad_mode="implicit")
+                     capturable=True, grad_mode="implicit")
         return total[0]
 
     assert saved_bytes(100) == saved_bytes(5)

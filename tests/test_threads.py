@@ -1,12 +1,14 @@
 """Kernels called from several threads at once (issue 20): the process-wide caches and switches
 give every thread the single-threaded results and stay intact.
 
-* RANSAC's sample tables (``ransac._SUBSET_CACHE`` / ``_RAW_CACHE``, grown lazily per (seed, n)):
+* RANSAC's sample tables (``ransac.samples._subset_stream`` / ``_raw_stream``, grown lazily per
+  (seed, n)):
   before, two threads with the same seed on cold caches got masks that differed from OpenCV's in
   1-6 of 32 problems, and the corrupted tables stayed in the cache for every later call.
 * ``_tuning.reference_forms()`` holds for the calling thread only (before, it switched every
   thread, and two interleaved blocks left it on for good).
-* CLAHE's geometry cache (``equalize._GEO_CACHE``, cleared when full) while other threads use it.
+* CLAHE's geometry cache (``equalize._geometry``, 16 entries, least recently used out first) while
+  other threads use it.
 """
 
 from __future__ import annotations
@@ -16,11 +18,11 @@ import threading
 import numpy as np
 import torch
 
-from torch_frontend import _tuning, ransac
+from torch_frontend import _tuning
 from torch_frontend.equalize import clahe
-from torch_frontend.ransac import find_fundamental
+from torch_frontend.ransac import find_fundamental, samples
 
-from .test_ransac import _cv_mask, _plant, _reference_subsets, _synthetic_scenes
+from ._ransac_cases import _cv_mask, _plant, _reference_subsets, _synthetic_scenes
 
 THREADS = 4
 TIMEOUT_S = 120.0
@@ -68,8 +70,7 @@ def _masks(problems) -> list:
 
 
 def _cold_caches():
-    ransac._SUBSET_CACHE.clear()
-    ransac._RAW_CACHE.clear()
+    samples._clear_sample_caches()
 
 
 def _raw_reference(state: int, count: int) -> np.ndarray:
@@ -82,11 +83,14 @@ def _raw_reference(state: int, count: int) -> np.ndarray:
 
 
 def _assert_caches_intact():
-    assert ransac._SUBSET_CACHE and ransac._RAW_CACHE
-    for (state, n), stream in list(ransac._SUBSET_CACHE.items()):
+    # every cached stream (the cache keys are the builders' arguments: (state, n) and (state,))
+    subsets = list(samples._subset_stream._cache.entries.items())
+    raws = list(samples._raw_stream._cache.entries.items())
+    assert subsets and raws
+    for (state, n), stream in subsets:
         table = stream.table
         assert np.array_equal(table, _reference_subsets(state, n, len(table))), (state, n)
-    for state, raw in list(ransac._RAW_CACHE.items()):
+    for (state,), raw in raws:
         assert np.array_equal(raw.vals, _raw_reference(state, raw.vals.size)), state
 
 
@@ -172,7 +176,7 @@ def test_reference_forms_hold_for_their_thread_only():
 
 def test_clahe_from_threads_while_its_cache_is_cleared():
     """CLAHE in 4 threads on 24 image sizes (more than the 16 geometry entries the cache keeps, so
-    it is cleared while other threads hold entries): the single-threaded outputs."""
+    entries are evicted while other threads hold them): the single-threaded outputs."""
     rng = np.random.default_rng(3)
     sizes = [(40 + 8 * (i % 6), 48 + 16 * (i // 6)) for i in range(24)]
     images = [torch.from_numpy(rng.integers(0, 256, (1, 1, h, w), dtype=np.uint8)) for h, w in sizes]

@@ -244,7 +244,7 @@ def test_clahe_straight_through_value_and_slope():
     img = tile.repeat(8, 8)[None]  # (1, 256, 256), 8 x 8 tiles of 32 x 32
     x = img.float().requires_grad_()
     y = _clahe_straight_through(x, 3.0, 8, 8)
-    assert torch.equal(y.detach(), _clahe_impl(img, 3.0, 8, 8).float())
+    assert torch.equal(y.detach(), _clahe_impl(img, 3.0, 8, 8).image.float())
     g, = torch.autograd.grad(y.sum(), x)
     torch.testing.assert_close(g, torch.full_like(g, 255 / 256), rtol=1e-6, atol=0)
 
@@ -270,8 +270,8 @@ def test_clahe_slope_matches_finite_differences_of_sparse_changes():
     mask = torch.zeros_like(img, dtype=torch.bool)
     mask[:, ::5, ::5] = True
     mask &= (img > 0) & (img < 255)
-    up = _clahe_impl(torch.where(mask, img + 1, img), 3.0, 8, 8).double()
-    dn = _clahe_impl(torch.where(mask, img - 1, img), 3.0, 8, 8).double()
+    up = _clahe_impl(torch.where(mask, img + 1, img), 3.0, 8, 8).image.double()
+    dn = _clahe_impl(torch.where(mask, img - 1, img), 3.0, 8, 8).image.double()
     fd = ((up - dn) / 2)[mask]
     s = _clahe_slope(img, 3.0, 8, 8).double()[mask]
     assert abs(float(fd.mean()) - float(s.mean())) < 0.05 * float(s.mean())

@@ -89,15 +89,6 @@ def test_lk_grouped_on_cpu_equals_one_pass(frames, monkeypatch):
         assert _equal(got, one), (lanes, streams)
 
 
-def test_ransac_cubic_host_check_equals_full_evaluation(monkeypatch):
-    """The CPU skips the quadratic fallback of _solve_cubic when no lane needs it: same roots."""
-    g = torch.Generator().manual_seed(3)
-    c = torch.randn(500, 4, generator=g, dtype=torch.float64)
-    ref = ransac._solve_cubic(c)
-    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)
-    assert _equal(ransac._solve_cubic(c), ref)
-
-
 # ---------------------------------------------------------------- fast forms == reference
 def _float_images(frames, dtype):
     """Real frames plus a non-integer offset field: sums are inexact, so an operation order change
@@ -141,7 +132,7 @@ def test_lk_fast_forms_equal_reference_uint8(frames):
     and the skipped straight-through estimator give the reference values bit for bit; so do
     points that require a gradient (reference forms, straight-through)."""
     prev, nxt, pts, valid = _lk_case(frames)
-    for kw in ({}, {"early_exit": False}, {"forward_backward": True}):
+    for kw in ({}, {"capturable": True}, {"forward_backward": True}):
         fast = lk.track_lk(prev, nxt, pts, valid, **kw)
         with _tuning.reference_forms():
             ref = lk.track_lk(prev, nxt, pts, valid, **kw)
@@ -236,19 +227,19 @@ def test_impl_layer_equals_doors_and_checks_nothing(frames, monkeypatch):
 
     ref = doors()
     states = ransac._seeds(B, seed=7)
-    opts = lk.LKOptions(21, 3, 30, 0.01, 1e-4, True, True)
+    opts = lk.LKOptions(21, 3, 30, 0.01, 1e-4, True, False)
     opts1 = dataclasses.replace(opts, max_level=1)
     _forbid_checks(monkeypatch)
     with pytest.raises(AssertionError, match="input check"):
         doors()
-    eq, eq2 = equalize._clahe_impl(imgs[:, 0], 3.0, 8, 8)[:, None], equalize._clahe_impl(nxt_imgs[:, 0], 3.0, 8, 8)[:, None]
+    eq, eq2 = (equalize._clahe_impl(x[:, 0], 3.0, 8, 8).image[:, None] for x in (imgs, nxt_imgs))
     P, Q = pyramid._build_pyramid_impl(eq, 3, False, True), pyramid._build_pyramid_impl(eq2, 3, False, True)
-    out, st = lk._track_lk_impl(P, Q, pts, valid, None, opts)
-    out1, st1 = lk._track_lk_impl(P, Q, pts, valid, guess, opts1)
-    st1 = lk._forward_backward_impl(P, Q, pts, out1, st1, opts1, 1, 0.5, True)
+    out, st, _ = lk._track_lk_impl(P, Q, pts, valid, None, opts)
+    out1, st1, _ = lk._track_lk_impl(P, Q, pts, valid, guess, opts1)
+    st1 = lk._forward_backward_impl(P, Q, pts, out1, st1, opts1, 1, 0.5, True).status
     res = ransac._find_fundamental_impl(pts.double(), out.double(), fv & st, 1.0, 0.99, 1000, states, None)
-    keep, mask = masks._distance_mask_impl(out, cnt, st, 30.0, torch.full((B, H, W), 255, dtype=torch.uint8))
-    gp, gv = corners._good_features_impl(eq2, n_max, 0.01, 30.0, mask != 0, False, 3, 0.04, None)
+    keep, mask, _ = masks._distance_mask_impl(out, cnt, st, 30.0, torch.full((B, H, W), 255, dtype=torch.uint8))
+    gp, gv, _ = corners._good_features_impl(eq2, n_max, 0.01, 30.0, mask != 0, False, 3, 0.04, None)
     got = [eq, eq2, *P.levels, out, st, out1, st1, res.F, res.inliers, res.ok, res.num_iters, keep, mask, gp, gv]
     assert len(got) == len(ref)
     for k, (a, b) in enumerate(zip(got, ref)):
@@ -257,9 +248,9 @@ def test_impl_layer_equals_doors_and_checks_nothing(frames, monkeypatch):
 
 
 def test_lk_options_checked_and_normalised():
-    o = lk.LKOptions(15, 2, 500, -1.0, 1e-3, 1, 0)
+    o = lk.LKOptions(15, 2, 500, -1.0, 1e-3, 1, 1)
     assert o.win_size == (15, 15) and o.max_iters == 100 and o.eps == 0.0
-    assert o.fixed_point is True and o.early_exit is False and isinstance(o.min_eig_threshold, float)
+    assert o.fixed_point is True and o.capturable is True and isinstance(o.min_eig_threshold, float)
     assert lk.LKOptions((21, 9)).win_size == (21, 9)
     assert dataclasses.replace(o, max_level=0).win_size == (15, 15)
     with pytest.raises(ConfigError, match="win_size"):

@@ -28,13 +28,14 @@ The module is named for the VINS step so that no public name of the package equa
 from __future__ import annotations
 
 import sys
-from typing import Tuple
+from typing import NamedTuple, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 
 from . import _tuning
 from ._autodiff import derivative_wanted
+from ._cache import cached
 from ._checks import as_image_batch
 from .errors import ConfigError
 
@@ -70,7 +71,7 @@ def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int,
     if x.dtype != torch.uint8:
         x = x.round().clamp(0, 255).to(torch.uint8)
     # _clahe_impl views the image as flat rows: a transposed / sliced image is copied first
-    out = _clahe_impl(x[:, 0].contiguous(), float(clip_limit), gx, gy)
+    out = _clahe_impl(x[:, 0].contiguous(), float(clip_limit), gx, gy).image
     return out if squeeze else out.unsqueeze(1)
 
 
@@ -84,8 +85,22 @@ def check_grid(height: int, width: int, gx: int, gy: int) -> None:
         raise ConfigError(f"image {width}x{height} too small for CLAHE padding with grid {gx}x{gy}")
 
 
-def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, capturable: bool = False) -> torch.Tensor:
-    """CLAHE of ``src`` ``(B, H, W)`` uint8, contiguous -> ``(B, H, W)`` uint8, no input checks.
+class ClaheResult(NamedTuple):
+    """What :func:`_clahe_impl` returns, on both paths.
+
+    Attributes:
+        image: ``(B, H, W)`` uint8, the equalised image.
+        overflow: always None: CLAHE has no budget (its work depends on sizes only), so both paths
+            are exact.
+    """
+
+    image: torch.Tensor
+    overflow: Optional[torch.Tensor] = None
+
+
+def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, capturable: bool = False) -> ClaheResult:
+    """CLAHE of ``src`` ``(B, H, W)`` uint8, contiguous, no input checks (the kernel's ``_impl``):
+    a :class:`ClaheResult` holding the ``(B, H, W)`` uint8 image.
 
     ``clip_limit`` as OpenCV (``<= 0``: no clipping); ``gx, gy`` tiles along x / y (>= 1, the image
     large enough for the padding: :func:`check_grid`).
@@ -94,10 +109,10 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, captu
     float temporaries then stay in cache and below glibc's mmap threshold. Elsewhere: one block.
     ``capturable``: one block on every device, histograms by ``index_add_`` into a buffer of known
     size (no ``bincount``: its output size is read back on CUDA), a kernel count independent of B;
-    the output is the same, bit for bit (:func:`_clahe_static`).
+    the output is the same, bit for bit (:func:`_clahe_capturable`).
     """
     if capturable:
-        return _clahe_static(src, clip_limit, gx, gy)
+        return ClaheResult(_clahe_capturable(src, clip_limit, gx, gy))
     B, H, W = src.shape
     dev = src.device
     rows = _tuning.for_device(dev).clahe_rows
@@ -170,7 +185,7 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, captu
         # values lie in [0, 255] up to float rounding, so the rounded value is a valid uint8;
         # going through int32 is ~2x faster on CPU than a direct float -> uint8 conversion.
         out[r0:r1] = top.round_().to(torch.int32)
-    return out.view(B, H, W)
+    return ClaheResult(out.view(B, H, W))
 
 
 def _clip_histograms(hist: torch.Tensor, clip_limit: float, area: int, i256: torch.Tensor) -> torch.Tensor:
@@ -192,7 +207,7 @@ def _clip_histograms(hist: torch.Tensor, clip_limit: float, area: int, i256: tor
     return hist
 
 
-def _static_histograms(src: torch.Tensor, clip_limit: float, gx: int, gy: int):
+def _histograms_capturable(src: torch.Tensor, clip_limit: float, gx: int, gy: int):
     """The clipped tile histograms of ``src (B, H, W)`` uint8 in a fixed op sequence: ``(hist (B, T,
     256) int32, geo, area)`` (histograms by ``index_add_`` of ones: int32 atomics on CUDA, no
     ``bincount``, whose output size is read back)."""
@@ -225,7 +240,7 @@ def _blend(q: torch.Tensor, geo, B: int, H: int, W: int) -> torch.Tensor:
     return top
 
 
-def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
+def _clahe_capturable(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
     """:func:`_clahe_impl` in one pass with a fixed op sequence (``capturable=True``).
 
     The same float32 arithmetic in the same order as the default path (so the same bits); only
@@ -234,7 +249,7 @@ def _clahe_static(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> tor
     index and read per pixel as one int32 (4 bytes: l11, l12, l21, l22).
     """
     B, H, W = src.shape
-    hist, geo, _ = _static_histograms(src, clip_limit, gx, gy)
+    hist, geo, _ = _histograms_capturable(src, clip_limit, gx, gy)
     T = gx * gy
     lut = (hist.cumsum(-1).float() * geo.lut_scale).round_().clamp_(0, 255).to(torch.uint8)  # (B, T, 256)
     packed = lut.view(B, T * 256).index_select(1, geo.lut_bytes).view(torch.int32).view(-1)  # (B * cells * 256,)
@@ -257,7 +272,7 @@ def _clahe_slope(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torc
     themselves (the histograms) are treated as constants: a discrete function of the image.
     """
     B, H, W = src.shape
-    hist, geo, _ = _static_histograms(src, clip_limit, gx, gy)
+    hist, geo, _ = _histograms_capturable(src, clip_limit, gx, gy)
     T = gx * gy
     c = hist.cumsum(-1).float() * geo.lut_scale  # (B, T, 256) unrounded LUTs
     slope = torch.empty_like(c)
@@ -277,7 +292,7 @@ def _clahe_straight_through(img: torch.Tensor, clip_limit: float, gx: int, gy: i
     with the straight-through gradient ``d out / d in`` = the LUT's local slope
     (:func:`_clahe_slope`). Without a gradient to record: the 8-bit result as float."""
     u8 = img.detach().to(torch.uint8).contiguous()
-    hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable).to(img.dtype)
+    hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable).image.to(img.dtype)
     if not derivative_wanted(img):
         return hard
     slope = _clahe_slope(u8, clip_limit, gx, gy).to(img.dtype)
@@ -288,17 +303,9 @@ class _Geo:
     pass
 
 
-_GEO_CACHE: dict = {}
-
-
+@cached(16)
 def _geometry(B, H, W, Hs, Ws, gx, gy, dev) -> _Geo:
     """Per-pixel keys and interpolation weights: depend on sizes and device only (cached)."""
-    k = (B, H, W, Hs, Ws, gx, gy, str(dev))
-    geo = _GEO_CACHE.get(k)
-    if geo is not None:
-        return geo
-    if len(_GEO_CACHE) >= 16:
-        _GEO_CACHE.clear()
     th, tw = Hs // gy, Ws // gx
     T = gy * gx
     ncx, ncy = gx + 1, gy + 1  # cells: tx1 in -1..gx-1 (clamped) -> gx + 1 kinds, same for y
@@ -338,5 +345,4 @@ def _geometry(B, H, W, Hs, Ws, gx, gy, dev) -> _Geo:
     lut_idx = tiles[:, :, None, :] * 256 + torch.arange(256, device=dev)[None, None, :, None]
     geo.lut_bytes = lut_idx.reshape(-1).to(i32)  # (ncy * ncx * 256 * 4,)
     geo.ones = torch.ones(1, dtype=torch.int32, device=dev)
-    _GEO_CACHE[k] = geo
     return geo

@@ -4,8 +4,8 @@
 descending priority (the track count; ties by index, i.e. a stable sort - VINS' ``std::sort`` is
 not stable, spec §3.7.2), a point is kept iff the mask at its rounded pixel is exactly 255, and
 every kept point blanks a filled disc of ``radius`` around its rounded centre. The result is the
-sequential result exactly, computed in parallel rounds (see ``corners._resolve_rounds``) on the
-N x N conflict matrix; the kept discs are then rasterised all at once as row spans (a +1/-1
+sequential result exactly, computed in parallel rounds (see ``corners.selection._resolve_rounds``)
+on the N x N conflict matrix; the kept discs are then rasterised all at once as row spans (a +1/-1
 difference buffer and one cumsum along x), so the cost is ~linear in B and independent of how
 many discs overlap.
 
@@ -18,14 +18,15 @@ The disc is ``dx² + dy² <= radius²`` around the ``cvRound``-ed centre, which 
 
 from __future__ import annotations
 
-import functools
 import math
-from typing import Tuple, Union
+from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
 
+from ._cache import cached
 from ._checks import check_points, check_shape, default_valid
-from .corners import _iota, _resolve_fixed, _resolve_rounds, _upper
+from .corners.selection import _resolve_rounds
+from .corners.selection_capturable import _iota, _resolve_fixed, _upper
 from .errors import ConfigError
 
 __all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
@@ -110,12 +111,29 @@ def distance_mask(
     if radius < 0:
         raise ConfigError(f"radius must be >= 0, got {radius}")
     mask = _base_mask_batch(base_mask, B, height, width, pts.device)
-    return _distance_mask_impl(pts, priority, valid, float(radius), mask)
+    res = _distance_mask_impl(pts, priority, valid, float(radius), mask)
+    return res.keep, res.mask
+
+
+class DistanceMaskResult(NamedTuple):
+    """What :func:`_distance_mask_impl` returns, on both paths.
+
+    Attributes:
+        keep: ``(B, N)`` bool, the kept points in the input order.
+        mask: ``(B, H, W)`` uint8, the base mask with the kept points' discs set to 0.
+        overflow: ``(B,)`` bool on the capturable path (True where the fixed rounds left a decision
+            open), None on the default path.
+    """
+
+    keep: torch.Tensor
+    mask: torch.Tensor
+    overflow: Optional[torch.Tensor]
 
 
 def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
-                        mask: torch.Tensor, *, capturable: bool = False, rounds: int | None = None) -> tuple:
-    """:func:`distance_mask` without input checks.
+                        mask: torch.Tensor, *, capturable: bool = False,
+                        rounds: int | None = None) -> DistanceMaskResult:
+    """:func:`distance_mask` without input checks (the kernel's ``_impl``).
 
     Args:
         pts: ``(B, N, 2)`` float, pixels ``(x, y)``.
@@ -126,21 +144,21 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
             copy to keep it).
         capturable: False: the conflicts are resolved in rounds until done (a host check each).
             True: shape-static, no host syncs, a kernel count independent of B and of the data:
-            ``rounds`` rounds (default :data:`MASK_ROUNDS`), see :func:`_distance_mask_static`.
+            ``rounds`` rounds (default :data:`MASK_ROUNDS`), see :func:`_distance_mask_capturable`.
 
     Returns:
-        ``keep (B, N)`` bool and ``mask``, as :func:`distance_mask`; with ``capturable`` also
-        ``overflow (B,)`` bool, True where the rounds left a decision open (elsewhere the result
-        equals the default path's).
+        A :class:`DistanceMaskResult`: ``keep (B, N)`` bool and ``mask`` as :func:`distance_mask`;
+        ``overflow (B,)`` bool with ``capturable`` (True where the rounds left a decision open;
+        elsewhere the result equals the default path's), None on the default path (exact).
     """
     if capturable:
-        return _distance_mask_static(pts, priority, valid, float(radius), mask,
-                                     MASK_ROUNDS if rounds is None else int(rounds))
+        return DistanceMaskResult(*_distance_mask_capturable(pts, priority, valid, float(radius), mask,
+                                                             MASK_ROUNDS if rounds is None else int(rounds)))
     B, N, _ = pts.shape
     H, W = mask.shape[-2:]
     dev = pts.device
     if N == 0:
-        return torch.zeros(B, 0, dtype=torch.bool, device=dev), mask
+        return DistanceMaskResult(torch.zeros(B, 0, dtype=torch.bool, device=dev), mask, None)
 
     # visiting order: priority descending, ties by index (stable); invalid points last
     key = torch.where(valid, priority.to(torch.float64), torch.full_like(priority, float("-inf"), dtype=torch.float64))
@@ -173,7 +191,7 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
     # count of every pixel: O(B * N * r) scatter work plus a few image-sized passes, instead of
     # O(B * N * r²) disc-offset indices.
     mask = _clear_discs(mask, rx, ry, keep_sorted, radius)
-    return keep, mask
+    return DistanceMaskResult(keep, mask, None)
 
 
 def _span_half_widths(radius: float, device) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -182,7 +200,7 @@ def _span_half_widths(radius: float, device) -> Tuple[torch.Tensor, torch.Tensor
     return _span_table(float(radius), torch.device(device))
 
 
-@functools.lru_cache(maxsize=32)
+@cached(32)
 def _span_table(radius: float, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
     # built on the device without a boolean index (also traceable by torch.compile)
     r = int(radius)
@@ -230,16 +248,16 @@ def _clear_discs(mask: torch.Tensor, rx: torch.Tensor, ry: torch.Tensor, keep: t
 MASK_ROUNDS = 8
 
 
-def _distance_mask_static(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
-                          mask: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _distance_mask_capturable(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
+                              mask: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`_distance_mask_impl` with ``capturable=True``: the same rules and results, a fixed
     op sequence.
 
-    The conflicts resolve in ``rounds`` rounds (:func:`~torch_frontend.corners._resolve_fixed`);
-    features the rounds leave undecided are not kept and set ``overflow``. The discs are
-    rasterised as row spans into a difference buffer with ``r`` spare rows above and below each
-    stream and one spare column, so that no span needs a bounds test (every index is in range).
-    Points that are not kept add 0.
+    The conflicts resolve in ``rounds`` rounds
+    (:func:`~torch_frontend.corners.selection_capturable._resolve_fixed`); features the rounds leave
+    undecided are not kept and set ``overflow``. The discs are rasterised as row spans into a
+    difference buffer with ``r`` spare rows above and below each stream and one spare column, so
+    that no span needs a bounds test (every index is in range). Points that are not kept add 0.
     """
     B, N, _ = pts.shape
     H, W = mask.shape[-2:]
@@ -286,9 +304,9 @@ class _MaskConstants:
     pass
 
 
-@functools.lru_cache(maxsize=32)
+@cached(32)
 def _mask_constants(B: int, H: int, W: int, radius: float, device: torch.device) -> _MaskConstants:
-    """Device constants of :func:`_distance_mask_static` (built once per sizes, radius, device)."""
+    """Device constants of :func:`_distance_mask_capturable` (built once per sizes, radius, device)."""
     c = _MaskConstants()
     c.r = int(radius)
     dys, hws = _span_table(radius, device)

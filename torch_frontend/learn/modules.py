@@ -11,6 +11,7 @@ Convention:
 
 from __future__ import annotations
 
+import warnings
 from typing import Optional, Union
 
 import torch
@@ -27,36 +28,41 @@ class LucasKanade(nn.Module):
     """``cv2.calcOpticalFlowPyrLK`` as a module: :func:`~torch_frontend.track_lk` with fixed settings.
 
     Args:
-        win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, early_exit: as
+        win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, capturable: as
             :func:`~torch_frontend.track_lk` (OpenCV's defaults, VINS's window).
         grad_mode: ``"implicit"`` (default here: the training setting; memory independent of the
             iterations, zero gradient for lost lanes) or ``"unrolled"``.
         status: ``"hard"`` (LK's bool status), ``"soft"`` or ``"straight_through"`` (a float
             confidence, :func:`~torch_frontend.learn.soft_status`).
         sigma, temperature, border: the soft status' settings.
+        early_exit: deprecated (``DeprecationWarning``): ``capturable = not early_exit``.
 
     ``forward(prev, next, pts, valid=None, init_pts=None) -> (next_pts (B, N, 2), status (B, N))``;
     images ``(B, 1, H, W)`` (uint8 or float 0..255) or pyramids, ``pts`` pixels in ``prev``.
     """
 
     def __init__(self, win_size: Union[int, tuple] = 21, max_level: int = 3, max_iters: int = 30, eps: float = 0.01,
-                 min_eig_threshold: float = 1e-4, *, fixed_point: Optional[bool] = None, early_exit: bool = True,
+                 min_eig_threshold: float = 1e-4, *, fixed_point: Optional[bool] = None, capturable: bool = False,
                  grad_mode: str = "implicit", status: str = "hard", sigma: float = PHOTO_SIGMA,
-                 temperature: float = BORDER_TEMPERATURE, border: int = 1):
+                 temperature: float = BORDER_TEMPERATURE, border: int = 1, early_exit: Optional[bool] = None):
         super().__init__()
+        if early_exit is not None:
+            warnings.warn("LucasKanade: early_exit is deprecated; use capturable (capturable = not early_exit)",
+                          DeprecationWarning, stacklevel=2)
+            capturable = not early_exit
         if grad_mode not in GRAD_MODES:
             raise ValueError(f"grad_mode: expected one of {GRAD_MODES}, got {grad_mode!r}")
         if status not in STATUS_MODES:
             raise ValueError(f"status: expected one of {STATUS_MODES}, got {status!r}")
         self.win_size, self.max_level, self.max_iters, self.eps = win_size, int(max_level), int(max_iters), float(eps)
-        self.min_eig_threshold, self.fixed_point, self.early_exit = float(min_eig_threshold), fixed_point, early_exit
+        self.min_eig_threshold, self.fixed_point, self.capturable = float(min_eig_threshold), fixed_point, bool(capturable)
         self.grad_mode, self.status = grad_mode, status
         self.sigma, self.temperature, self.border = float(sigma), float(temperature), int(border)
 
     def forward(self, prev, next, pts: torch.Tensor, valid: Optional[torch.Tensor] = None,
                 init_pts: Optional[torch.Tensor] = None):
         out, st = track_lk(prev, next, pts, valid, self.win_size, self.max_level, self.max_iters, self.eps,
-                           self.min_eig_threshold, init_pts, fixed_point=self.fixed_point, early_exit=self.early_exit,
+                           self.min_eig_threshold, init_pts, fixed_point=self.fixed_point, capturable=self.capturable,
                            grad_mode=self.grad_mode)
         if self.status == "hard":
             return out, st

@@ -216,11 +216,13 @@ class FeatureTracker:
         they stay valid after the next replay.
 
         With ``capturable=False`` (the CPU-tuned path, whose early exits need the host) only the LK
-        iteration kernel is compiled (``torch_frontend.lk.compile_step``)."""
+        iteration kernel is compiled, for this tracker only (its ``params.lk_compile_step``:
+        ``LKOptions.compile_step`` with ``compile_kwargs``; other trackers keep theirs)."""
         if not self.capturable:
-            from ..lk import compile_step
+            import dataclasses
 
-            compile_step(enable, **compile_kwargs)
+            self.params = dataclasses.replace(self.params, lk_compile_step=(dict(compile_kwargs) or True) if enable
+                                              else False)
             return
         if not enable:
             self._compiled = None

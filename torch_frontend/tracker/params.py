@@ -99,6 +99,10 @@ class TrackerParams:
     # per level, level 0 first). A smaller budget is fewer launches per step; a point still
     # iterating when it ends raises frame.overflow (lk.LKOptions.iter_budget)
     lk_iter_budget: Any = None
+    # default path only: the LK's per-iteration kernel through torch.compile (False; True or the
+    # torch.compile keywords, normalised to sorted pairs: lk.LKOptions.compile_step), this
+    # tracker's setting (FeatureTracker.compile on a non-capturable tracker)
+    lk_compile_step: Any = False
     # VINS-Fusion: LK from a prediction and the temporal backward check use one level, spec §6.2
     fusion_short_max_level: int = 1
     # VINS-Fusion: fewer tracks from the prediction than this => plain LK instead, spec §6.2
@@ -154,9 +158,11 @@ class TrackerParams:
         if isinstance(self.lk_iter_budget, list):  # params stay hashable
             object.__setattr__(self, "lk_iter_budget", tuple(self.lk_iter_budget))
         try:
+            if self.lk_compile_step is not False:  # hashable: the normalised torch.compile keywords
+                object.__setattr__(self, "lk_compile_step", LKOptions(compile_step=self.lk_compile_step).compile_step)
             self.lk_options, self.lk_short_options  # noqa: B018
         except ConfigError as exc:  # name the tracker's field, not LKOptions'
-            raise ConfigError(f"lk_iter_budget / lk_grad_mode / lk_*: {exc}") from None
+            raise ConfigError(f"lk_iter_budget / lk_grad_mode / lk_compile_step / lk_*: {exc}") from None
 
     def check_image_size(self, height: int, width: int) -> None:
         """The kernels' size checks for ``height x width`` images (the step calls the kernels
@@ -201,11 +207,13 @@ class TrackerParams:
     # ------------------------------------------------------------------ derived settings
     @functools.cached_property
     def lk_options(self) -> LKOptions:
-        """VINS's LK call (spec §2), OpenCV's fixed point (the tracker's pyramids are 8-bit)."""
+        """VINS's LK call (spec §2), OpenCV's fixed point (the tracker's pyramids are 8-bit), on the
+        step's path (``capturable``)."""
         return LKOptions(win_size=(self.lk_win_size, self.lk_win_size), max_level=self.lk_max_level,
                          max_iters=self.lk_max_iters, eps=self.lk_eps, min_eig_threshold=self.lk_min_eig_threshold,
-                         fixed_point=True, early_exit=not self.capturable, iter_budget=self.lk_iter_budget,
-                         grad_mode=self.lk_grad_mode if self.differentiable else "unrolled")
+                         fixed_point=True, capturable=self.capturable, iter_budget=self.lk_iter_budget,
+                         grad_mode=self.lk_grad_mode if self.differentiable else "unrolled",
+                         compile_step=self.lk_compile_step)
 
     @functools.cached_property
     def lk_short_options(self) -> LKOptions:

@@ -63,12 +63,11 @@ def equalize(img: Tensor, params: TrackerParams) -> Tensor:
     if not params.uses_clahe:
         return img
     gx, gy = params.clahe_tile_grid
-    if params.differentiable:
-        return _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy,
-                                       capturable=params.capturable).unsqueeze(1)
-    if params.capturable:
-        return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=True).unsqueeze(1)
-    return _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy).unsqueeze(1)
+    if params.differentiable:  # a float image with a graph: the 8-bit values and a slope
+        out = _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable)
+    else:
+        out = _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable).image
+    return out.unsqueeze(1)
 
 
 def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
@@ -96,29 +95,6 @@ def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid], capturabl
 # readImage: LK, inBorder, compaction
 
 
-def _lk(prev: Pyramid, nxt: Pyramid, pts: Tensor, valid: Tensor, params: TrackerParams, *, short: bool = False,
-        init_pts: Optional[Tensor] = None) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
-    """VINS's LK call (21x21, 30 iterations, eps 0.01, minEig 1e-4, spec §2; ``short``: VINS-Fusion's
-    one-level call), OpenCV's fixed point on the 8-bit pyramids. Returns ``(pts, status, overflow)``
-    (overflow None on the default path)."""
-    opts = params.lk_short_options if short else params.lk_options
-    if params.capturable:
-        return _track_lk_impl(prev, nxt, pts, valid, init_pts, opts, return_overflow=True)
-    return (*_track_lk_impl(prev, nxt, pts, valid, init_pts, opts), None)
-
-
-def _flow_back(prev: Pyramid, nxt: Pyramid, pts: Tensor, out: Tensor, status: Tensor, params: TrackerParams, *,
-               levels: int, from_start: bool) -> Tuple[Tensor, Optional[Tensor]]:
-    """VINS-Fusion's FLOW_BACK check of a forward result ``out`` (spec §6.3): track back with
-    ``levels`` levels from ``out`` (starting at ``pts`` when ``from_start``) and keep the points that
-    come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS).
-    Returns ``(status, overflow)``."""
-    args = (prev, nxt, pts, out, status, params.lk_options, levels, params.flow_back_threshold, from_start)
-    if params.capturable:
-        return _forward_backward_impl(*args, return_overflow=True)
-    return _forward_backward_impl(*args), None
-
-
 def in_border(pts: Tensor, width: int, height: int, border: int = 1) -> Tensor:
     """VINS ``inBorder``: ``cvRound`` (half to even, as ``torch.round``), then
     ``border <= x < W - border`` and ``border <= y < H - border``. NaN is outside."""
@@ -137,24 +113,33 @@ def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Te
     FLOW_BACK check), the ``inBorder`` test on the image's own size, a stable compaction, then
     ``track_cnt += 1`` for every feature of the ``tracked`` streams. ``prev_pts`` holds the pixels
     before this step. Returns ``(table, overflow)`` (the LK budgets' flag; None on the default path).
+
+    The LK is VINS's call (21x21, 30 iterations, eps 0.01, minEig 1e-4, spec §2;
+    ``params.lk_options``), VINS-Fusion's one-level call from the prediction
+    (``params.lk_short_options``), OpenCV's fixed point on the 8-bit pyramids; the FLOW_BACK check
+    (spec §6.3) tracks back with one level from the result, starting at the points, and keeps those
+    that come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS).
     """
     run_slots = run.unsqueeze(-1)
     lk_valid = table.valid & run_slots
     H, W = pyr.levels[0].shape[-2:]
     fusion = params.mode == "fusion"
+    cap = params.capturable
     with stage("lk"):
         # capturable: the prediction branch runs whenever the mode can have predictions (no sync)
-        if fusion and (params.capturable or bool(has_prediction.any())):
-            nxt_p, st_p, of_p = _lk(prev_pyr, pyr, table.pts, lk_valid, params, short=True, init_pts=table.prediction)
-            nxt, st, of = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+        if fusion and (cap or bool(has_prediction.any())):
+            nxt_p, st_p, of_p = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, table.prediction,
+                                               params.lk_short_options, capturable=cap)
+            nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
             use = has_prediction & (st_p.sum(1) >= params.prediction_min_tracked)
             nxt, st = where_streams(use, nxt_p, nxt), where_streams(use, st_p, st)
             of = None if of is None else torch.where(use, of_p, of)
         else:
-            nxt, st, of = _lk(prev_pyr, pyr, table.pts, lk_valid, params)
+            nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
         if fusion and params.flow_back:
-            st, of_b = _flow_back(prev_pyr, pyr, table.pts, nxt, st, params, levels=params.fusion_short_max_level,
-                                  from_start=True)
+            st, of_b = _forward_backward_impl(prev_pyr, pyr, table.pts, nxt, st, params.lk_options,
+                                              params.fusion_short_max_level, params.flow_back_threshold, True,
+                                              capturable=cap)
             of = merge_overflow(of, of_b)
     st = st & in_border(nxt, W, H, params.border_size)
     moved = table.replace(prev_pts=table.pts,
@@ -222,11 +207,11 @@ def reject_with_f(table: FeatureTable, publish: Tensor, camera, params: TrackerP
         res = _ransac(table, publish, camera, params, stage)
     apply = (publish & res.ok).unsqueeze(-1)
     table = table.compact(torch.where(apply, table.valid & res.inliers, table.valid))
-    return table, (res.overflow & publish if params.capturable else None)
+    return table, (None if res.overflow is None else res.overflow & publish)
 
 
 def _ransac(table: FeatureTable, publish: Tensor, camera, params: TrackerParams, stage):
-    """rejectWithF's F-RANSAC on the ``publish`` streams (a ``FundamentalResult``)."""
+    """rejectWithF's F-RANSAC on the ``publish`` streams (a ``ransac.FundamentalFit``)."""
     fv = table.valid & publish.unsqueeze(-1)
     # both point sets lifted in one call (one set of kernels)
     p12 = virtual_pinhole(camera, torch.cat((table.prev_pts, table.pts), 1), torch.cat((fv, fv), 1), params)
@@ -257,10 +242,10 @@ def _ransac_states_cached(batch: int, seed: int) -> tuple:
 
 
 class Detection(NamedTuple):
-    """The streams that detect this step and setMask's masks for them (``rows`` in stream order;
-    ``mask (len(rows), H, W)`` uint8, None when no stream detects). Capturable: ``rows`` is every
-    stream, ``detect (B,)`` says which ones detect (None on the default path, where ``rows`` are
-    exactly the detecting streams)."""
+    """The streams setMask ran on and their masks: ``rows`` in stream order, ``mask (len(rows), H,
+    W)`` uint8 (None when no stream detects). Default path: ``rows`` are exactly the detecting
+    streams and ``detect`` is None. Capturable: ``rows`` is every stream (no host sync picks them)
+    and ``detect (B,)`` says which ones detect."""
 
     rows: Tensor
     mask: Optional[Tensor]
@@ -274,7 +259,18 @@ def _stream_rows(batch: int, device) -> Tensor:
 
 
 def _rows_of(table: FeatureTable, rows: Tensor, x: Tensor) -> Tensor:
+    """The ``rows`` streams of ``x (B, ...)`` (``x`` itself when they are every stream)."""
     return x if rows.numel() == table.batch else x.index_select(0, rows)
+
+
+def _to_streams(detection: Detection, x: Tensor, other: Tensor) -> Tensor:
+    """``(B, ...)``: the detecting streams' rows of ``x`` (one per ``detection.rows``), ``other``'s
+    elsewhere (neither is written into)."""
+    if detection.detect is not None:  # capturable: every stream ran, the mask picks
+        return where_streams(detection.detect, x, other)
+    if detection.rows.numel() == other.shape[0]:
+        return x
+    return other.index_copy(0, detection.rows, x)
 
 
 def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_mask: Optional[Tensor],
@@ -282,40 +278,38 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
     """VINS ``setMask`` (spec §3.7) for the ``detect`` streams: features sorted by track count
     (descending; ties by slot order: a stable sort, where VINS's ``std::sort`` is unstable, see the
     spec), each kept iff its rounded pixel is still 255 in the mask, which then gets a filled disc of
-    radius ``min_dist``; dropped features leave the table.
+    radius ``min_dist``; dropped features leave the table. Streams outside ``detect`` come out
+    unchanged (identity order, keep = valid: the table is already packed).
 
-    Only the detecting streams pay for the mask (mono: the published ones, about one frame in two at
-    20 Hz with freq 10): one host sync picks them. ``capturable``: every stream, the others
-    unchanged by masks (no sync); the third value is the overflow flag of the fixed rounds (None
-    on the default path).
+    The path only changes which streams run. Default: only the detecting streams pay for the mask
+    (mono: the published ones, about one frame in two at 20 Hz with freq 10), one host sync picks
+    them. ``capturable``: every stream runs (no sync). The third value is the overflow flag of the
+    capturable path's fixed rounds (None on the default path).
     """
     B, K = table.valid.shape
+    dev = table.valid.device
     if params.capturable:
-        return _set_mask_static(table, detect, params, base_mask, height, width, stage)
-    rows = detect.nonzero().flatten()
-    if rows.numel() == 0:
-        return table, Detection(rows, None), None
+        detection = Detection(_stream_rows(B, dev), None, detect)
+    else:
+        detection = Detection(detect.nonzero().flatten(), None)
+        if detection.rows.numel() == 0:
+            return table, detection, None
+    rows = detection.rows
     valid, cnt = _rows_of(table, rows, table.valid), _rows_of(table, rows, table.track_cnt)
-    key = torch.where(valid, cnt, torch.full_like(cnt, -1))
-    order = torch.sort(-key, dim=1, stable=True).indices
-    pts_s = torch.gather(_rows_of(table, rows, _mask_points(table)), 1, order.unsqueeze(-1).expand(-1, -1, 2))
-    valid_s, cnt_s = torch.gather(valid, 1, order), torch.gather(cnt, 1, order)
+    order = _setmask_order(valid, cnt)
+    pts_s = gather_slots(_rows_of(table, rows, _mask_points(table)), order)
+    cnt_s, valid_s = torch.gather(cnt, 1, order), torch.gather(valid, 1, order)
     n = rows.numel()
     if base_mask is None:
-        mask = torch.full((n, height, width), 255, dtype=torch.uint8, device=valid.device)
+        mask = torch.full((n, height, width), 255, dtype=torch.uint8, device=dev)
     else:
         mask = base_mask.expand(n, height, width).clone()  # written into: one copy per stream
     with stage("mask"):
-        kept, mask = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask)
-    keep = valid_s & kept
-    if rows.numel() != B:
-        full = torch.arange(K, device=order.device).expand(B, K).clone()
-        full[rows] = order
-        order = full
-        keep_full = table.valid.clone()
-        keep_full[rows] = keep
-        keep = keep_full
-    return table.permute(order).compact(keep), Detection(rows, mask), None
+        res = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask, capturable=params.capturable)
+    order = _to_streams(detection, order, _slot_rows(B, K, dev))
+    keep = _to_streams(detection, valid_s & res.keep, table.valid)
+    overflow = None if res.overflow is None else res.overflow & detect
+    return table.permute(order).compact(keep), Detection(rows, res.mask, detection.detect), overflow
 
 
 def _mask_points(table: FeatureTable) -> Tensor:
@@ -324,30 +318,11 @@ def _mask_points(table: FeatureTable) -> Tensor:
     return table.pts.detach() if derivative_wanted(table.pts) else table.pts
 
 
-def _setmask_order(table: FeatureTable) -> Tensor:
-    """setMask's visiting order ``(B, K)``: track count descending, ties by slot (stable), empty last."""
-    key = torch.where(table.valid, table.track_cnt, torch.full_like(table.track_cnt, -1))
+def _setmask_order(valid: Tensor, track_cnt: Tensor) -> Tensor:
+    """setMask's visiting order ``(n, K)`` of ``valid`` / ``track_cnt`` ``(n, K)``: track count
+    descending, ties by slot (stable), empty slots last."""
+    key = torch.where(valid, track_cnt, torch.full_like(track_cnt, -1))
     return torch.sort(-key, dim=1, stable=True).indices
-
-
-def _set_mask_static(table: FeatureTable, detect: Tensor, params: TrackerParams, base_mask: Optional[Tensor],
-                     height: int, width: int, stage) -> Tuple[FeatureTable, Detection, Tensor]:
-    """:func:`set_mask` for every stream with no host sync; streams outside ``detect`` come out
-    unchanged (identity order, keep = valid: the table is already packed)."""
-    B, K = table.valid.shape
-    dev = table.valid.device
-    order = _setmask_order(table)
-    pts_s, cnt_s, valid_s = (gather_slots(x, order) for x in (_mask_points(table), table.track_cnt, table.valid))
-    if base_mask is None:
-        mask = torch.full((B, height, width), 255, dtype=torch.uint8, device=dev)
-    else:
-        mask = base_mask.expand(B, height, width).clone()
-    with stage("mask"):
-        kept, mask, overflow = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask,
-                                                   capturable=True)
-    order = where_streams(detect, order, _slot_rows(B, K, dev))
-    keep = where_streams(detect, valid_s & kept, table.valid)
-    return table.permute(order).compact(keep), Detection(_stream_rows(B, dev), mask, detect), overflow & detect
 
 
 @cached(32)
@@ -361,31 +336,25 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
     """``goodFeaturesToTrack`` into the free slots (spec §3.6 step 7c-d, §5.2): ``max_cnt - n``
     corners (quality 0.01, ``min_dist``, setMask's mask) per detecting stream, appended in
     response order with ``ids = -1``, ``track_cnt = 1`` (``is_new``). Returns ``(table, overflow)``
-    (the fixed candidate block / rounds too small; None on the default path)."""
+    (the fixed candidate block / rounds too small; None on the default path). The streams are
+    setMask's ``detection.rows``; capturable: every stream with ``K = max_cnt`` outputs (no host
+    sync for the count), the non-detecting ones masked out."""
     rows = detection.rows
-    B = table.batch
+    if rows.numel() == 0:  # default path, no stream detects
+        return table.append(table.pts[:, :0], table.valid[:, :0]), None
     if derivative_wanted(img):  # corners are a discrete choice: detected pixels carry no gradient
         img = img.detach()
-    if detection.detect is not None:  # capturable: every stream, K = max_cnt outputs, masked
-        n_max = table.capacity - table.valid.sum(1)
-        with stage("detection"):
-            pts, valid, overflow = _good_features_impl(
-                img, n_max, params.gftt_quality_level, float(params.min_dist), detection.mask != 0, False,
-                params.gftt_block_size, params.gftt_harris_k, table.capacity, capturable=True)
-        detect = detection.detect
-        return table.append(pts, valid & detect.unsqueeze(-1)), overflow & detect
-    if rows.numel() == 0:
-        return table.append(table.pts[:, :0], table.valid[:, :0]), None
     n_max = table.capacity - _rows_of(table, rows, table.valid).sum(1)
     with stage("detection"):
-        pts, valid = _good_features_impl(_rows_of(table, rows, img), n_max, params.gftt_quality_level,
-                                         float(params.min_dist), detection.mask != 0, False,
-                                         params.gftt_block_size, params.gftt_harris_k, None)
-    if rows.numel() != B:
-        full_pts = pts.new_zeros(B, pts.shape[1], 2)
-        full_valid = valid.new_zeros(B, valid.shape[1])
-        full_pts[rows], full_valid[rows] = pts, valid
-        pts, valid = full_pts, full_valid
+        res = _good_features_impl(_rows_of(table, rows, img), n_max, params.gftt_quality_level, float(params.min_dist),
+                                  detection.mask != 0, False, params.gftt_block_size, params.gftt_harris_k,
+                                  table.capacity if params.capturable else None, capturable=params.capturable)
+    if detection.detect is not None:  # capturable: every stream ran
+        return table.append(res.pts, res.valid & detection.detect.unsqueeze(-1)), res.overflow & detection.detect
+    pts, valid = res.pts, res.valid
+    if rows.numel() != table.batch:  # the other streams add nothing
+        pts = pts.new_zeros(table.batch, pts.shape[1], 2).index_copy_(0, rows, pts)
+        valid = valid.new_zeros(table.batch, valid.shape[1]).index_copy_(0, rows, valid)
     return table.append(pts, valid), None
 
 
@@ -443,10 +412,12 @@ def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tenso
     with stage("pyramid"):
         rpyr = image_pyramid(right, params)
     with stage("lk"):
-        ruv, rst, of = _lk(pyr, rpyr, table.pts, valid, params)
-        if params.flow_back:
-            rst, of_b = _flow_back(pyr, rpyr, table.pts, ruv, rst, params, levels=params.lk_max_level,
-                                   from_start=False)
+        ruv, rst, of = _track_lk_impl(pyr, rpyr, table.pts, valid, None, params.lk_options,
+                                      capturable=params.capturable)
+        if params.flow_back:  # the backward check from the right result, no guess (spec §6.3)
+            rst, of_b = _forward_backward_impl(pyr, rpyr, table.pts, ruv, rst, params.lk_options,
+                                               params.lk_max_level, params.flow_back_threshold, False,
+                                               capturable=params.capturable)
             of = merge_overflow(of, of_b)
     if params.flow_back:
         rst = rst & in_border(ruv, right.shape[-1], right.shape[-2], params.border_size)

@@ -1,0 +1,181 @@
+"""Corner responses, as OpenCV's ``cornerMinEigenVal`` / ``cornerHarris`` (spec §5.2), batched.
+
+Scale of the responses (OpenCV ``cornerEigenValsVecs``): the Sobel derivatives are multiplied by
+``scale = 1 / (2**(aperture - 1) * block_size * 255)`` for 8-bit input, i.e. ``1 / 3060`` for
+aperture 3 and block 3 (confirmed against cv2 4.14: responses agree to ~2.4e-7 of the image
+maximum); the response is therefore ``scale**2`` times the eigenvalue of the raw integer Sobel
+sums. We apply the same scale (to float images too: grey levels are always taken as 8-bit
+0..255), so values equal OpenCV's without rescaling. The derivatives and their box sums are
+computed un-scaled (integers, exact in float32 for 8-bit images) and scaled once at the end,
+which keeps OpenCV's exact ties exact.
+
+Speed (CPU, 1 thread): the Sobel filters are in-place slice sums and the box sums one product at a
+time, and the streams run in groups of about one 752x480 frame
+(``_tuning.Strategy.corner_streams``), so temporaries stay cache-sized; see
+``benchmarks/bench_image.py``. The capturable path computes the three products as one stacked
+tensor in one pass over the batch (the same operations per element, so the same values).
+"""
+
+from __future__ import annotations
+
+from typing import Tuple
+
+import torch
+import torch.nn.functional as F
+
+from .. import _tuning
+from ..errors import ConfigError
+
+__all__ = ["check_block"]
+
+
+def check_block(height: int, width: int, block_size: int) -> None:
+    """The size checks of the responses: ``block_size >= 1`` (``ConfigError``) and an image large
+    enough for the Sobel border and the reflect-101 box sum (``ValueError``)."""
+    if block_size < 1:
+        raise ConfigError(f"block_size must be >= 1, got {block_size}")
+    H, W = height, width
+    if H < 2 or W < 2:
+        raise ValueError(f"img: expected H, W >= 2 for the Sobel border, got {(H, W)}")
+    lo = block_size // 2
+    hi = block_size - 1 - lo
+    if max(lo, hi) >= min(H, W):
+        raise ValueError(f"img: block_size {block_size} too large for image {(H, W)}")
+
+
+def _covariance_sums(img: torch.Tensor, block_size: int,
+                     stacked: bool = False) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """Un-scaled Sobel-3 products box-summed over ``block_size``, and OpenCV's derivative scale.
+
+    ``img``: (B, 1, H, W) float (sizes checked by :func:`check_block`). Returns (Sxx, Sxy, Syy)
+    each (B, H, W), and ``scale``. The in-place accumulations act on fresh tensors that autograd
+    does not save, so this one form is also differentiable. ``stacked``: the three products are
+    box-summed as one (B, 3, H, W) tensor (the same operations per element, so the same values,
+    in a third of the launches: the capturable path; on the CPU the per-product passes keep the
+    buffers cache- and mmap-friendly).
+    """
+    if stacked:
+        return _covariance_sums_stacked(img, block_size)
+    H, W = img.shape[-2:]
+    lo = block_size // 2
+    hi = block_size - 1 - lo
+    # reflect-101 (OpenCV BORDER_DEFAULT) == torch 'reflect'. Separable Sobel by slicing: adds
+    # are exact for integer grey levels and, done in place, much cheaper on CPU than a conv2d
+    # with one input channel (fewer fresh full-size buffers).
+    xp = F.pad(img, (1, 1, 1, 1), mode="reflect")
+    hx = xp[..., :, 2:] - xp[..., :, :-2]  # [-1, 0, 1] along x, (B, 1, H+2, W)
+    hs = torch.add(xp[..., :, :-2], xp[..., :, 1:-1], alpha=2.0)  # [1, 2, 1] along x
+    hs += xp[..., :, 2:]
+    dx = torch.add(hx[..., :-2, :], hx[..., 1:-1, :], alpha=2.0)
+    dx += hx[..., 2:, :]
+    dy = hs[..., 2:, :] - hs[..., :-2, :]
+    del hx, hs, xp
+    # one product at a time (not a 3-channel cat): buffers stay below glibc's mmap threshold,
+    # so big temporaries are recycled instead of page-faulted in on every call.
+    sums = []
+    for u, w in ((dx, dx), (dx, dy), (dy, dy)):
+        prod = (u * w)[:, 0]
+        if block_size == 1:
+            sums.append(prod)
+            continue
+        # un-normalised box sum, anchor at ksize // 2 like OpenCV (Point(-1, -1)), reflect-101
+        pp = F.pad(prod[:, None], (lo, hi, lo, hi), mode="reflect")[:, 0]
+        del prod
+        rows = pp[:, 0:H, :].clone()
+        for i in range(1, block_size):  # loop over kernel taps
+            rows += pp[:, i:i + H, :]
+        del pp
+        S = rows[..., 0:W].clone()
+        for i in range(1, block_size):
+            S += rows[..., i:i + W]
+        sums.append(S)
+    del dx, dy
+    scale = 1.0 / (4.0 * block_size * 255.0)  # 2**(aperture-1) * block * 255, aperture 3
+    return sums[0], sums[1], sums[2], scale
+
+
+def _covariance_sums_stacked(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """:func:`_covariance_sums` with the three products in one tensor (see there)."""
+    H, W = img.shape[-2:]
+    lo = block_size // 2
+    hi = block_size - 1 - lo
+    xp = F.pad(img, (1, 1, 1, 1), mode="reflect")
+    hx = xp[..., :, 2:] - xp[..., :, :-2]
+    hs = torch.add(xp[..., :, :-2], xp[..., :, 1:-1], alpha=2.0)
+    hs += xp[..., :, 2:]
+    dx = torch.add(hx[..., :-2, :], hx[..., 1:-1, :], alpha=2.0)
+    dx += hx[..., 2:, :]
+    dy = hs[..., 2:, :] - hs[..., :-2, :]
+    prod = torch.cat((dx, dx, dy), 1) * torch.cat((dx, dy, dy), 1)  # (B, 3, H, W): xx, xy, yy
+    if block_size > 1:
+        pp = F.pad(prod, (lo, hi, lo, hi), mode="reflect")
+        rows = pp[:, :, 0:H, :].clone()
+        for i in range(1, block_size):
+            rows += pp[:, :, i:i + H, :]
+        prod = rows[..., 0:W].clone()
+        for i in range(1, block_size):
+            prod += rows[..., i:i + W]
+    scale = 1.0 / (4.0 * block_size * 255.0)
+    return prod[:, 0], prod[:, 1], prod[:, 2], scale
+
+
+def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
+    # sqrt'(0) is infinite: flat regions ((a-c)² + b² == 0) would give inf/NaN gradients. The
+    # inner where keeps the untaken branch finite, so the gradient there is exactly 0.
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def _as_float(x: torch.Tensor) -> torch.Tensor:
+    """Grey levels as float (float32 for uint8; a float image as it is)."""
+    return x if x.is_floating_point() else x.to(torch.float32)
+
+
+def _response_impl(img: torch.Tensor, use_harris: bool, block_size: int, k: float) -> torch.Tensor:
+    """Min-eigenvalue (``use_harris=False``) or Harris response of ``img`` ``(B, 1, H, W)`` uint8 or
+    float 0..255 -> ``(B, 1, H, W)`` float, no input checks (sizes: :func:`check_block`; ``k`` is
+    used by Harris only).
+
+    On the CPU without autograd the streams are processed in groups
+    (``_tuning.Strategy.corner_streams``): the response needs ~10 image-sized temporaries, which
+    for a whole batch fall out of cache and above glibc's mmap threshold (fresh buffers are
+    page-faulted in on every call). The values are those of one pass.
+    """
+    def fn(x):
+        return _harris_impl(x, block_size, k) if use_harris else _min_eigen_impl(x, block_size)
+
+    B, _, H, W = img.shape
+    per = _tuning.for_device(img.device).corner_streams(B, H, W)
+    if per is None or img.requires_grad:
+        return fn(_as_float(img))
+    out = None
+    for b0 in range(0, B, per):
+        r = fn(_as_float(img[b0:b0 + per]))  # uint8 -> float per group, too
+        if out is None:
+            out = r.new_empty((B,) + tuple(r.shape[1:]))
+        out[b0:b0 + per] = r
+    return out
+
+
+def _min_eigen_impl(x: torch.Tensor, block_size: int, stacked: bool = False) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size, stacked)
+    # lambda_min = ((Sxx + Syy) - sqrt((Sxx - Syy)² + 4 Sxy²)) / 2 on the un-scaled sums, times
+    # scale² once (OpenCV scales first; the difference is ~1e-7 relative, and equal sums still
+    # give exactly equal responses, which keeps OpenCV's ties). The in-place steps act on fresh
+    # tensors autograd does not save; only the square root has a reference form (finite gradients
+    # where the discriminant is 0), which equals ``sqrt_`` wherever the input is finite.
+    disc = sxx - syy
+    disc = disc * disc
+    disc.addcmul_(sxy, sxy, value=4.0)
+    root = disc.sqrt_() if _tuning.inplace_ok(disc) else _safe_sqrt(disc)
+    return (sxx + syy).sub_(root).mul_(0.5 * s * s).unsqueeze(1)
+
+
+def _harris_impl(x: torch.Tensor, block_size: int, k: float, stacked: bool = False) -> torch.Tensor:
+    sxx, sxy, syy, s = _covariance_sums(x, block_size, stacked)
+    s2 = s * s
+    a = sxx * s2
+    b = sxy * s2
+    c = syy * s2
+    return (a * c - b * b - k * (a + c) * (a + c)).unsqueeze(1)
+

@@ -1,0 +1,255 @@
+"""The capturable LK (``LKOptions(capturable=True)``, the capturable tracker's; ``docs/lk.md``).
+
+Every lane of every stream in one pass, a fixed number of masked iterations per level
+(``LKOptions.iter_budget``, default ``max_iters``), no host sync once the per-size constants are
+cached, no data-dependent shape, and a kernel count independent of B and of the data: 21 aten ops
+per iteration (fixed point on 8-bit levels, float32 points, no gradient; 22 with float64 points;
+34 with float interpolation, whose window difference is the eager path's), ~100 per level for the
+template and the bookkeeping.
+
+* OpenCV's fixed-point sample is exact integer arithmetic, so any formulation gives its values: per
+  level the next image becomes a 4-channel *difference image* (:func:`_difference_image`); one
+  ``searchsorted`` gives the window's top-left (floor, offset and clamp in one op), one gather the
+  windows, one ``baddbmm`` with OpenCV's weights and a ``floor`` the window difference.
+* Stopping: the step test in float64 via one ``bmm``; signs alternate between iterations so that
+  one ``cdist`` (inf norm) gives ``|delta + prevDelta|``; the tests and the running mask are
+  columns of a bool buffer whose ``all`` is the next running mask. A lane that stops does not take
+  its stopping step in the loop: frozen at the same position it recomputes the same step, and the
+  end of the level applies it. A lane still running when a budget below ``max_iters`` ends raises
+  its stream's ``overflow`` flag.
+
+Convention:
+    As :mod:`.windows`: points-last ``(2, m)`` lanes, window origins ``u = origin + win``,
+    grey levels in 1/32 units.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Tuple
+
+import torch
+
+from .. import _tuning
+from .._cache import cached
+from ..pyramid import Pyramid
+from .options import LKOptions
+from .windows import (
+    _OSC,
+    _gradient_system,
+    _lane_index,
+    _Level,
+    _level_start,
+    _template,
+    _win_consts,
+    _window_diff,
+)
+
+
+@cached(64)
+def _capturable_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, device):
+    """Per level-size constants of the capturable path's fixed-point iterations (cached).
+
+    ``grid`` ``(2, L)``: boundaries for ``searchsorted(grid, p, right=True)``, which gives, per axis,
+    ``idx = floor(p) + win + 1`` for window origins inside ``[-win, size)`` (rows ``-win .. size``,
+    the shorter padded with ``+inf``), 0 below and ``size + win + 1`` above: one op for the floor,
+    the offset, the clamp and the integer conversion. ``idx`` is the window's top-left in the
+    padded level's 4-channel image (:func:`_difference_image`). ``flag`` ``(Hp - 1, Wp, 1)``: 1 at
+    the ``idx`` of inside origins, 0 at the two margins (outside)."""
+    gx = torch.arange(-ww, W + 1, dtype=dtype, device=device)
+    gy = torch.arange(-wh, H + 1, dtype=dtype, device=device)
+    grid = torch.full((2, max(gx.numel(), gy.numel())), math.inf, dtype=dtype, device=device)
+    grid[0, :gx.numel()] = gx
+    grid[1, :gy.numel()] = gy
+    r = torch.arange(H + 2 * wh + 1, device=device)
+    c = torch.arange(W + 2 * ww + 2, device=device)
+    flag = (((r >= 1) & (r <= H + wh))[:, None] & ((c >= 1) & (c <= W + ww))[None, :]).to(dtype)
+    return grid, flag.unsqueeze(-1)
+
+
+@cached(32)
+def _capturable_consts(device):
+    """OpenCV's bilinear weights as one ``addcmul`` + one product (see :func:`_fixed_weights`):
+    ``T = off + frac * sgn`` ``(2: x/y, m, 5)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10, 2^14,
+    0)``, the weights of the difference image's channels."""
+    f32 = torch.float32
+    off = torch.tensor([[[128.0, 0, 128, 128, 0]], [[128.0, 128, 0, 128, 0]]], dtype=f32, device=device)
+    sgn = torch.tensor([[[-128.0, 128, -128, 0, 0]], [[-128.0, -128, 128, 0, 0]]], dtype=f32, device=device)
+    return off, sgn
+
+
+def _difference_image(Jp: torch.Tensor, flag: torch.Tensor) -> torch.Tensor:
+    """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 5)``: at ``(y, x)`` the channels
+    ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]`` and the
+    inside flag (the last column is padding). OpenCV's fixed-point sample ``sum iw_ab J_ab 2^-9`` is
+    then one dot product with ``(iw00, iw01, iw10, 2^14, 0)``: exact (integers times ``2^-9`` below
+    ``2^23``), whatever the order of the multiply-adds."""
+    J = Jp[:, 0]
+    d = torch.stack((J[:, :-1, :-1], J[:, :-1, 1:], J[:, 1:, :-1], J[:, 1:, 1:]), -1)
+    d = torch.cat((d[..., :3] - d[..., 3:], d[..., 3:]), -1) * 2.0**-9
+    d = torch.nn.functional.pad(d, (0, 0, 0, 1))
+    return torch.cat((d, flag.expand(d.shape[:-1] + (1,))), -1)
+
+
+def _bmm_exact(device) -> bool:
+    """The difference-image dot products are exact unless CUDA matmuls may round to TF32."""
+    return torch.device(device).type != "cuda" or not torch.backends.cuda.matmul.allow_tf32
+
+
+def _lk_capturable(
+    prev: Pyramid,
+    nxt: Pyramid,
+    pts: torch.Tensor,
+    valid: torch.Tensor,
+    init: torch.Tensor | None,
+    opts: LKOptions,
+    top: int,
+    want_capped: bool = False,
+) -> Tuple[torch.Tensor, torch.Tensor, Optional[torch.Tensor], Optional[torch.Tensor]]:
+    """The capturable LK: all lanes of all streams in one pass, ``opts.budget_at`` masked
+    iterations per level, no host sync, an op count independent of the batch and of the data.
+
+    Same results as the eager path (:func:`.eager._lk_eager`) bit for bit (both compute every
+    inexact float value, ``b``, the step, the tests, with the same code): a lane that stops
+    (OpenCV's loop break) is frozen by a ``running`` mask. Arguments as ``_lk_eager``'s. Returns
+    ``next_pts (B, N, 2)``, ``status (B, N)``, with a budget below ``max_iters`` the ``(B,)``
+    overflow flag (a lane of the stream still running at the end of some level's budget), else
+    None, and with ``want_capped`` the ``(B N,)`` mask of the lanes still running at the end of
+    level 0's budget (else None).
+
+    Per iteration (fixed point, no gradient; see the module notes): ``searchsorted`` gives the
+    window's top-left in the difference image, one advanced-index gather reads ``(m, wh, ww + 1,
+    5)`` windows, one ``baddbmm`` with the weights (``remainder``, ``addcmul``, ``mul``, ``round``)
+    plus ``floor`` gives the window difference; with gradients, or float images, the window
+    difference is :func:`_window_diff`'s (the eager path's code). Then ``b`` and the step as
+    the eager path, the step frozen (0) for lanes outside the image; a lane that stops does
+    not take the stopping step in the loop: it is applied at the end of the level from the last
+    iteration's step, which a frozen lane recomputes identically at the same position (OpenCV's
+    ``nextPt += delta``, and ``-= delta / 2`` after an oscillation). Signs alternate between
+    iterations so that one ``cdist`` (inf-norm) gives ``|delta + prevDelta|``.
+    """
+    win, min_eig = opts.win_size, opts.min_eig_threshold
+    fixed, eps2 = opts.fixed_point, opts.eps * opts.eps
+    B, N, _ = pts.shape
+    M = B * N
+    dtype, dev = pts.dtype, pts.device
+    ww, wh = win
+    n = wh * (ww + 1)  # pitched window
+    k = _win_consts(ww, wh, dtype, dev)
+    half, zero = k["half"], k["zero"]
+    osc_thr = _OSC.get(dtype, 0.01)
+    if M == 0:
+        return torch.empty_like(pts), valid.clone(), None, None
+    p0 = pts.reshape(M, 2).t().contiguous()  # (2, M): points last
+    valid = valid.reshape(M)
+    status = valid
+    lanes = _lane_index(B, N, dev)
+    out = (p0 if init is None else init.reshape(M, 2).t().contiguous()) * (1.0 / (1 << top))
+    overflow = capped = None
+
+    for level in range(top, -1, -1):
+        if level != top:
+            out = out * 2.0
+        budget = opts.budget_at(level)
+        inexact = budget < opts.max_iters
+        H, W = nxt.levels[level].shape[-2:]
+        Jpad = nxt.padded(level, wh + 1, ww + 1, dtype)
+        lv = _Level(prev.padded(level, wh + 1, ww + 1, dtype), Jpad, H, W, win, dtype)
+        uc, frac, proc = _level_start(lv, p0, valid, level, k)
+        if level == 0:
+            status = status & proc
+        # lanes not processed get origin 0 so that nothing reads out of bounds even for non-finite
+        # input (they never move: their result stays ``out``)
+        ucl = torch.where(proc, uc, zero).long()
+        iv, g = _template(lv, ucl, frac, lanes, fixed, dtype, k, sync=False)
+        a11, a12, a22, dinv, ok = _gradient_system(g, proc, ww, wh, min_eig)
+        o0 = out
+        if budget == 0:
+            if level == 0:
+                status = status & ok
+                if want_capped:
+                    capped = ok
+            if inexact:
+                lost = ok.view(B, N).any(1)
+                overflow = lost if overflow is None else overflow | lost
+            continue
+        # the difference image's dot products are exact for OpenCV's 8-bit levels only
+        fast = fixed and nxt.rounded and _tuning.inplace_ok(iv, g, lv.Jp, o0) and _bmm_exact(dev)
+        if fixed and _tuning.inplace_ok(iv, lv.Jp, o0):
+            iv = k["c05"] - iv  # 1/2 - template: the rounding's 1/2 and the difference in one op
+            iv_init = True
+        else:
+            iv_init = False
+        if fast:
+            grid, flag_img = _capturable_tables(H, W, ww, wh, dtype, dev)
+            J5 = _difference_image(Jpad, flag_img)
+            Hq, Wq = J5.shape[1:3]
+            J5w = J5.as_strided((B, Hq - wh + 1, Wq - ww, wh, ww + 1, 5), (Hq * Wq * 5, Wq * 5, 5, Wq * 5, 5, 1))
+            w_off, w_sgn = _capturable_consts(dev)
+            hiv = iv.view(M, n, 1)
+        else:
+            lane = lanes * lv.HWp
+            st = (lv.Jp, lv.Jview, lv.jstr, lv.offs, k, lv.spanm1)
+        # step = C s dinv with C = ((-A22, A12), (A12, -A11)) 2^-20: the products and the difference
+        # as the eager path's (A12 b2 - A22 b1, A12 b1 - A11 b2) (b = s 2^-20, a power of two)
+        # even / odd iterations: the step with alternating signs (2, M, 2, 2); the scale and signs
+        # are powers of two: exact
+        Cs = torch.stack((a22, a12, a12, a11), 1).view(M, 2, 2) * k["step_signs"]
+        p = torch.where(proc, o0 - half, zero)  # OpenCV's local nextPt (window origin)
+        # the stopping tests as columns (conv, osc, running) of two alternating bool buffers: one
+        # ``all`` gives the next running mask (iteration j reads tst[j % 2], writes tst[1 - j % 2])
+        tst = torch.empty((2, 3, M), dtype=torch.bool, device=dev)
+        tst[0, 1].fill_(True)  # j = 0: no oscillation test
+        tst[0, 2].copy_(ok)
+        sdp = None
+        for j in range(budget):
+            sg = 1.0 - 2.0 * (j % 2)
+            if fast:
+                idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
+                Wn = J5w[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 5)
+                f = torch.remainder(p, 1.0)  # p - floor(p), exact
+                if f.dtype != torch.float32:
+                    f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
+                iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 5)
+                iw = torch.mul(iw[0], iw[1]).round_()
+                if iw.dtype != dtype:
+                    iw = iw.to(dtype)
+                diff = torch.baddbmm(hiv, Wn.view(M, n, 5), iw.unsqueeze(-1)).floor_().view(M, 1, n)
+                flag = Wn[:, 0, 0, 4]
+            else:
+                diff, inside = _window_diff(p, iv, lane, *st, fixed, iv_init)
+                diff = diff.unsqueeze(1)
+                flag = inside.to(dtype)
+            s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
+            sd = (Cs[j % 2] * s.unsqueeze(1)).sum(2) * (dinv * flag).unsqueeze(1)  # (m, 2): sg * delta
+            t, t1 = tst[j % 2], tst[1 - j % 2]
+            dd = sd.detach().double()
+            # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
+            torch.gt(torch.bmm(dd.unsqueeze(1), dd.unsqueeze(2)).view(M), eps2, out=t[0])
+            if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
+                osc = torch.cdist(sd.detach().unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
+                torch.gt(osc, osc_thr, out=t[1])
+            else:
+                moved0 = flag > 0
+            run = torch.all(t, 0, out=t1[2])
+            if not _tuning.inplace_ok(p, sd):
+                run = run.clone()  # autograd keeps the mask, the buffer is rewritten two iterations on
+            p = torch.addcmul(p, sd.t(), run, value=sg)
+            sdp = sd.detach()
+        conv = t[0]  # the last iteration's step test: for a frozen lane, that of its stopping step
+        # ---- end of level: the stopping step of the lanes that stopped inside the image
+        stopped = ok > run  # ok & ~run: converged, oscillated, or left the image
+        inside = flag > 0  # the last iteration's: where the frozen lanes are
+        left = stopped > inside  # stopped outside: left the image (OpenCV: status 0 at level 0)
+        took = stopped & inside  # converged or oscillated: take the stopping step
+        o = torch.addcmul(p, sd.t(), took, value=sg) + half
+        o = torch.addcmul(o, sd.t(), took & conv, value=-0.5 * sg)  # oscillated: |delta|^2 > eps^2
+        out = torch.where(ok & moved0, o, o0)  # lanes that never moved keep the level's start
+        if level == 0:
+            status = status & (ok > left)
+            if want_capped:
+                capped = run.clone()
+        if inexact:
+            lost = run.view(B, N).any(1)
+            overflow = lost if overflow is None else overflow | lost
+    return out.t().reshape(B, N, 2), status.reshape(B, N), overflow, capped
