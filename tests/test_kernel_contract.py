@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import torch
 
+from ._layers import LAYERS
+
 B = 2
 
 
@@ -75,31 +77,34 @@ def _ransac():
     return impl, lambda cap: impl(p1, p2, valid, 1.0, 0.99, 50, states, None, capturable=cap)
 
 
-# (kernel module, builder, whether the room has landed the contract for sure: False = skip, with
-# the reason, while the kernel still shows the names from before the contract)
+# kernel module -> the builder of its ``_impl`` and a call on tiny inputs (a new kernel adds a line)
 KERNELS = {
-    "equalize": ("torch_frontend.equalize", _clahe, True),
-    "corners": ("torch_frontend.corners", _corners, True),
-    "masks": ("torch_frontend.masks", _masks, True),
-    "lk": ("torch_frontend.lk", _lk, False),
-    "ransac": ("torch_frontend.ransac", _ransac, False),
+    "equalize": ("torch_frontend.equalize", _clahe),
+    "corners": ("torch_frontend.corners", _corners),
+    "masks": ("torch_frontend.masks", _masks),
+    "lk": ("torch_frontend.lk", _lk),
+    "ransac": ("torch_frontend.ransac", _ransac),
 }
 
 
-def _pre_contract_names(module: str):
-    """Names ``*_static`` of a kernel module (and of its submodules, for a package): the capturable
-    helpers' names from before the contract (it names them ``*_capturable``)."""
+def _static_names(module: str):
+    """Callables named ``*_static`` in a kernel module and its submodules (the contract's one name
+    for the concept is ``*_capturable``)."""
     mods = [m for name, m in list(sys.modules.items()) if name == module or name.startswith(module + ".")]
     return sorted({n for m in mods for n in vars(m) if n.endswith("_static") and callable(getattr(m, n))})
 
 
+def test_every_kernel_is_listed():
+    """Every kernel of the kernel layer (the plan, ``tests/_layers.py``) is checked here."""
+    kernels = dict(LAYERS)["kernels"]
+    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid")) == sorted(KERNELS)
+
+
 @pytest.mark.parametrize("kernel", list(KERNELS))
 def test_impl_follows_the_kernel_contract(kernel):
-    module, build, landed = KERNELS[kernel]
+    module, build = KERNELS[kernel]
     importlib.import_module(module)
-    old = _pre_contract_names(module)
-    if old and not landed:
-        pytest.skip(f"{module} has not landed the kernel contract yet (still has {', '.join(old)})")
+    old = _static_names(module)
     assert not old, f"{module}: capturable helpers must be named *_capturable, not {old}"
     impl, call = build()
     param = inspect.signature(impl).parameters.get("capturable")

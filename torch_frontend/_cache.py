@@ -36,6 +36,8 @@ from typing import Any, Callable, Dict, List, NamedTuple, Optional
 
 import torch
 
+from ._autodiff import is_wrapper
+
 __all__ = ["cached", "clear_caches", "cache_stats", "holds_plain_tensors"]
 
 _MISSING = object()
@@ -72,19 +74,10 @@ def _tensors(value: Any):
                 yield from _tensors(v)
 
 
-def _plain(t: torch.Tensor) -> bool:
-    """``t`` owns memory: not a ``torch.func`` wrapper (a transform's wrappers have no storage)."""
-    try:
-        t.untyped_storage()
-    except (RuntimeError, NotImplementedError):
-        return False
-    return True
-
-
 def holds_plain_tensors(value: Any) -> bool:
     """Every tensor in ``value`` owns memory (none is a ``torch.func`` transform's wrapper, which
     must not outlive its transform): such a value may be kept across calls."""
-    return all(_plain(t) for t in _tensors(value))
+    return not any(is_wrapper(t) for t in _tensors(value))
 
 
 class _BuilderThread(threading.local):

@@ -1,28 +1,24 @@
 """``torch.compile`` marks that do not import ``torch._dynamo`` when the package is imported.
 
-``torch.compiler.disable`` and ``torch.compiler.assume_constant_result`` import dynamo when they
-are applied, which adds ~1.5 s to every process that imports a kernel (the CLI, each rank of a
-distributed job) for a feature most runs never use. These two apply the same public marks later:
-
-* :func:`constant_result`: ``torch.compiler.assume_constant_result`` (a traced call is evaluated at
-  trace time and baked into the graph as a constant). The mark is applied at once when dynamo is
-  loaded already, else by :func:`prepare_compile`, which every compile entry point of the package
-  (``FeatureTracker.compile``) calls before ``torch.compile``; ``assume_constant_result`` marks and
-  returns the very function, so references taken earlier see the mark.
-* :func:`outside_graphs`: ``torch.compiler.disable``, built on the first call made while compiling
-  (when dynamo is loaded anyway); eager calls go straight to the function.
+``torch.compiler.assume_constant_result`` imports dynamo when it is applied, which adds ~1.5 s to
+every process that imports a kernel (the CLI, each rank of a distributed job) for a feature most
+runs never use. :func:`constant_result` applies the same public mark later (a traced call of a
+marked function is evaluated at trace time and baked into the graph as a constant): at once when
+dynamo is loaded already, else in :func:`prepare_compile`, which every compile entry point of the
+package (``FeatureTracker.compile``) calls before ``torch.compile``. ``assume_constant_result``
+marks and returns the very function, so references taken earlier see the mark. (Cache misses while
+compiling are kept out of graphs by ``_cache.cached`` itself.)
 """
 
 from __future__ import annotations
 
-import functools
 import sys
 import threading
 from typing import Callable, List
 
 import torch
 
-__all__ = ["constant_result", "outside_graphs", "prepare_compile"]
+__all__ = ["constant_result", "prepare_compile"]
 
 _CONSTANT: List[Callable] = []  # functions waiting for their assume_constant_result mark
 _LOCK = threading.Lock()
@@ -50,19 +46,3 @@ def prepare_compile() -> None:
         _CONSTANT.clear()
     for fn in pending:
         torch.compiler.assume_constant_result(fn)
-
-
-def outside_graphs(fn):
-    """``torch.compiler.disable(fn)``, made on the first call inside a ``torch.compile`` trace (cache
-    builders: a cold cache under tracing runs eagerly instead of being traced)."""
-    disabled = []
-
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        if torch.compiler.is_compiling():
-            if not disabled:
-                disabled.append(torch.compiler.disable(fn))
-            return disabled[0](*args, **kwargs)
-        return fn(*args, **kwargs)
-
-    return call

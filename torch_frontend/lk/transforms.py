@@ -34,6 +34,7 @@ from typing import Any, Callable, List, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 
+from .._autodiff import is_wrapper
 from ..pyramid import Pyramid
 
 __all__ = ["has_wrapped_tensor"]
@@ -45,23 +46,14 @@ VMAP_OVER_DERIVATIVE = (
     "(grad(vmap(f))), or take the derivative of the loss summed over the batch: the streams are independent.")
 
 
-def _plain(t: torch.Tensor) -> bool:
-    """``t`` owns memory: not a ``torch.func`` transform's wrapper (which has no storage)."""
-    try:
-        t.untyped_storage()
-    except (RuntimeError, NotImplementedError):
-        return False
-    return True
-
-
 def has_wrapped_tensor(*args: Any) -> bool:
     """Some argument (a tensor, a :class:`Pyramid`'s levels; None ignored) is a ``torch.func``
     transform's wrapper, so a transform may batch it. ~0.1 us a tensor."""
     for x in args:
         if isinstance(x, Pyramid):
-            if not all(_plain(t) for t in x.levels):
+            if any(is_wrapper(t) for t in x.levels):
                 return True
-        elif isinstance(x, torch.Tensor) and not _plain(x):
+        elif isinstance(x, torch.Tensor) and is_wrapper(x):
             return True
     return False
 

@@ -28,7 +28,7 @@ import torch
 import torch.utils._pytree as pytree
 
 from .. import _tuning
-from .._autodiff import derivative_wanted, has_tangent, straight_through
+from .._autodiff import derivative_wanted, has_tangent, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
 from .clock import ClockDecision, count_published, mono_clock
 from .frame import FeatureFrame
@@ -79,44 +79,6 @@ def _check_float_values(img: Tensor, rounded: Tensor, name: str) -> None:
                          f"this library expects grey levels 0..255 (multiply by 255)")
 
 
-class _VmapProbe(torch.autograd.Function):
-    """``apply(x)``: an empty marker of shape ``(0,)``, or ``(1,)`` when some ``torch.func.vmap``
-    batches ``x``: functorch runs this public ``vmap`` staticmethod instead of ``forward`` then. No
-    derivative flows through the marker."""
-
-    @staticmethod
-    def forward(x):
-        return x.new_empty(0)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output):
-        ctx.mark_non_differentiable(output)
-
-    @staticmethod
-    def vmap(info, in_dims, x):
-        return x.new_empty(1), None
-
-    @staticmethod
-    def backward(ctx, grad):
-        return None
-
-    @staticmethod
-    def jvp(ctx, tangent):
-        return None
-
-
-def _is_vmapped(x) -> bool:
-    """``x`` is a tensor being batched by ``torch.func.vmap``. A tensor that owns memory is no
-    transform's wrapper (the common case: ~0.1 us); a wrapper is asked through :class:`_VmapProbe`."""
-    if not isinstance(x, torch.Tensor):
-        return False
-    try:
-        x.untyped_storage()
-        return False
-    except (RuntimeError, NotImplementedError):
-        return _VmapProbe.apply(x).shape[0] > 0
-
-
 def check_images(images, params: TrackerParams, batch: int, device, name: str = "images",
                  size: Optional[Tuple[int, int]] = None) -> Tensor:
     """``images`` as contiguous ``(B, 1, H, W)`` uint8 on ``device`` (``params.differentiable``: float32
@@ -125,7 +87,7 @@ def check_images(images, params: TrackerParams, batch: int, device, name: str = 
     size is the estimator's), any size the kernels can work on, but ``size`` (the previous image's
     ``(H, W)``) when given: LK needs both images of a pair at one size. Float input: NaN pixels and
     0..1 images raise ``ValueError`` (:func:`_check_float_values`)."""
-    if _is_vmapped(images):
+    if is_vmapped(images):
         raise ValueError(f"{name}: torch.func.vmap of a tracker step is not supported (its CPU path has host "
                          f"syncs and data-dependent shapes that vmap cannot batch); the step is batched "
                          f"already: put the outer batch into the streams, FeatureTracker(cfg, num_streams=V * B)")
