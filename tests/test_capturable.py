@@ -91,6 +91,7 @@ def test_capturable_default_follows_the_device():
     assert FeatureTracker(CFG, capturable=True).params.lk_options.capturable is True
 
 
+@pytest.mark.slow  # the golden battery's capturable cases cover the sample in the default suite
 @pytest.mark.parametrize("device", DEVICES)
 def test_identical_on_the_euroc_sample(device):
     cfg = tf.load_config(CFG)
@@ -98,12 +99,15 @@ def test_identical_on_the_euroc_sample(device):
     assert _run_both(cfg, steps, 1, device=device) > 5
 
 
-def test_identical_on_warped_motion():
+@pytest.mark.parametrize("n", [pytest.param(6, id="6 steps"), pytest.param(14, id="14 steps", marks=pytest.mark.slow)])
+def test_identical_on_warped_motion(n):
+    """Two streams moving by several pixels per frame (more LK iterations than the sample needs)."""
     cfg = tf.load_config(CFG)
-    steps = _sequence("warp", 2, 14)
-    assert _run_both(cfg, steps, 2) > 5
+    steps = _sequence("warp", 2, n)
+    assert _run_both(cfg, steps, 2) > (2 if n < 10 else 5)
 
 
+@pytest.mark.slow  # the golden battery's mono cases: other images, a pause and restarts per stream
 def test_identical_on_a_mixed_batch():
     """Streams that differ: other sequences, a stream that pauses (``active``), one that restarts."""
     cfg = tf.load_config(CFG)
@@ -123,6 +127,7 @@ def test_identical_on_a_mixed_batch():
     assert _run_both(cfg, steps, B, actives=actives) > 10
 
 
+@pytest.mark.slow  # the golden battery's stereo/capturable case is the same comparison
 def test_identical_in_fusion_stereo():
     cfg = tf.load_config(STEREO)
     left, right = _frames("cam0"), _frames("cam1")
@@ -132,11 +137,17 @@ def test_identical_in_fusion_stereo():
     assert _run_both(cfg, steps, 1, mode="fusion", right=rights) == n
 
 
-def _count_steps(B, n_warm=3, n=2):
-    """OpCounter figures of ``n`` capturable steps (the pure step on validated inputs, after warm-up)."""
+def _count_steps(B, n_warm=3, n=2, crop=None):
+    """OpCounter figures of ``n`` capturable steps (the pure step on validated inputs, after warm-up);
+    ``crop``: ``(H, W)`` top-left crops of the frames with the config's size and principal point
+    moved along (the capturable step is shape-static: its kernel count depends on no size)."""
     cfg = tf.load_config(CFG)
-    tr = FeatureTracker(cfg, num_streams=B, capturable=True)
     steps = _sequence("warp", B, n_warm + n)
+    if crop is not None:
+        H, W = crop
+        cfg = dataclasses.replace(cfg, image_width=W, image_height=H)  # top-left crops: the same camera
+        steps = [(img[..., :H, :W].contiguous(), stamps) for img, stamps in steps]
+    tr = FeatureTracker(cfg, num_streams=B, capturable=True)
     for img, stamps in steps[:n_warm]:
         tr.track(img, stamps)
     out = []
@@ -149,14 +160,23 @@ def _count_steps(B, n_warm=3, n=2):
     return out
 
 
-def test_capturable_step_has_no_syncs_and_a_launch_count_independent_of_b():
-    one, sixteen = _count_steps(1), _count_steps(16)
-    for c in one + sixteen:
+#: a crop that keeps the LK's four pyramid levels (level 3 is 24 x 32 > the 21-px window)
+COUNT_CROP = (192, 256)
+
+
+@pytest.mark.parametrize("B", [4, pytest.param(16, marks=pytest.mark.slow)])
+def test_capturable_step_has_no_syncs_and_a_launch_count_independent_of_b(B):
+    """0 syncs; the same kernels per step at B = 1 and B (on crops: the count depends on no size,
+    as the full-frame B = 1 count shows) and on every step (the data)."""
+    full = _count_steps(1)
+    one, many = _count_steps(1, crop=COUNT_CROP), _count_steps(B, crop=COUNT_CROP)
+    for c in full + one + many:
         assert c.syncs == 0, c.summary()
-    k1, k16 = [c.kernels for c in one], [c.kernels for c in sixteen]
-    assert len(set(k1)) == 1, f"kernels per step vary with the data: {k1}"
-    assert k16 == k1, f"kernels per step depend on B: B=1 {k1}, B=16 {k16}"
-    assert k1[0] <= KERNEL_BOUND, one[0].summary()
+    kf, k1, kb = ([c.kernels for c in cs] for cs in (full, one, many))
+    assert len(set(kf)) == 1, f"kernels per step vary with the data: {kf}"
+    assert k1 == kf, f"kernels per step depend on the image size: full {kf}, {COUNT_CROP} crops {k1}"
+    assert kb == k1, f"kernels per step depend on B: B=1 {k1}, B={B} {kb}"
+    assert kf[0] <= KERNEL_BOUND, full[0].summary()
 
 
 def test_the_default_cpu_path_is_unchanged_by_the_flag():
@@ -188,6 +208,7 @@ def test_capturable_step_is_one_graph():
     assert ex.graph_count == 1
 
 
+@pytest.mark.slow  # ~60 s of dynamo tracing; test_capturable_step_is_one_graph traces the step by default
 def test_compile_runs_the_whole_step_with_an_eager_fallback():
     cfg = tf.load_config(CFG)
     steps = _sequence("warp", 1, 4)

@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
-from typing import Callable, List
+import traceback
+from typing import Callable, Dict, List, Tuple
 
 import pytest
 import torch
@@ -45,6 +47,9 @@ SIM_KERNELS = (
     "optimize_4dof solver=splu", "optimize_6dof", "verify_loops", "PoseGraph 4dof (16 keyframes)",
     "PoseGraph 6dof (16 keyframes)",
 )
+
+
+FAKE_CHILD_TIMEOUT = 300  # s: every fake-cuda case in the forked child (~5 s)
 
 
 def _sim_dir_or_skip():
@@ -85,18 +90,14 @@ def test_sim_no_device_mismatch(sim_rows, name):
 
 
 # ------------------------------------------------------------------ FakeTensorMode, fake cuda
-@pytest.fixture(scope="module")
-def fake_cuda():
-    """A ``FakeTensorMode`` factory; on a CPU-only torch the simulator's no-op CUDA device guard is
-    installed first (torch's Python bindings open a CUDA guard for a cuda tensor, fake or not)."""
+def _fake_mode_here():
+    """A ``FakeTensorMode`` factory in this process; on a CPU-only torch the simulator's no-op CUDA
+    device guard is installed first (torch's Python bindings open a CUDA guard for a cuda tensor,
+    fake or not). Raises ``pytest.skip.Exception`` when the guard cannot be built."""
     if not _CUDA_BUILD:
-        _sim_dir_or_skip()
-        mod = sys.modules.get("cudaguard")
-        if mod is None:
-            spec = importlib.util.spec_from_file_location("cudaguard", SIM_DIR / "cudaguard.py")
-            mod = importlib.util.module_from_spec(spec)
-            sys.modules["cudaguard"] = mod
-            spec.loader.exec_module(mod)
+        spec = importlib.util.spec_from_file_location("cudaguard", SIM_DIR / "cudaguard.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
         try:
             mod.install()
         except mod.BuildError as e:
@@ -104,6 +105,53 @@ def fake_cuda():
     from torch._subclasses.fake_tensor import FakeTensorMode
 
     return lambda: FakeTensorMode(allow_non_fake_inputs=False)
+
+
+def _in_a_forked_child(cases: Dict[str, Callable[[Callable], None]]) -> Dict[str, Tuple[str, str]]:
+    """Every ``case(fake_mode_factory)`` in one forked child process: ``name -> (kind, text)``, kind
+    ``"ok"``, ``"skip"`` or ``"fail"`` (with the traceback). The guard is process-wide and cannot be
+    removed: registered in the test process, it would make autograd start device threads at the
+    next backward, after which a forked process (the distributed tests' ranks) cannot run autograd."""
+    ctx = multiprocessing.get_context("fork")
+    recv, send = ctx.Pipe(duplex=False)
+
+    def child():
+        out = {}
+        try:
+            mode = _fake_mode_here()
+        except pytest.skip.Exception as e:
+            send.send({n: ("skip", str(e)) for n in cases})
+            return
+        for name, case in cases.items():
+            try:
+                case(mode)
+                out[name] = ("ok", "")
+            except BaseException:  # reported to the parent, which fails that test with it
+                out[name] = ("fail", traceback.format_exc())
+        send.send(out)
+
+    proc = ctx.Process(target=child)
+    proc.start()
+    got = recv.recv() if recv.poll(FAKE_CHILD_TIMEOUT) else {}
+    proc.join(FAKE_CHILD_TIMEOUT)
+    return {n: got.get(n, ("fail", "the forked child sent nothing for this case")) for n in cases}
+
+
+@pytest.fixture(scope="module")
+def fake_cuda():
+    """Every fake-cuda case's outcome (``name -> (kind, text)``), run once in a forked child."""
+    if not _CUDA_BUILD:
+        _sim_dir_or_skip()
+    cases = {f"shapes: {n}": (lambda mode, case=c: _check_fake(mode, case)) for n, c in FAKE_CASES.items()}
+    cases.update({"vocabulary transform": _vocabulary_transform, "cpu constant": _cpu_constant_raises})
+    return _in_a_forked_child(cases)
+
+
+def _outcome(fake_cuda, name: str) -> None:
+    kind, text = fake_cuda[name]
+    if kind == "skip":
+        pytest.skip(text)
+    assert kind == "ok", f"{name}, in the forked child:\n{text}"
 
 
 def _tensors(obj) -> List[torch.Tensor]:
@@ -258,11 +306,11 @@ FAKE_CASES = {
 }
 
 
-def _check_fake(fake_cuda, case: Callable):
+def _check_fake(fake_mode, case: Callable):
     from torch._subclasses.fake_tensor import FakeTensor
 
     ref = _tensors(case(torch.device("cpu")))
-    with fake_cuda():
+    with fake_mode():
         out = _tensors(case(torch.device("cuda")))
     assert len(out) == len(ref) > 0
     for k, (o, r) in enumerate(zip(out, ref)):
@@ -273,10 +321,14 @@ def _check_fake(fake_cuda, case: Callable):
 
 @pytest.mark.parametrize("name", sorted(FAKE_CASES))
 def test_fake_cuda_shapes_and_devices(fake_cuda, name):
-    _check_fake(fake_cuda, FAKE_CASES[name])
+    _outcome(fake_cuda, f"shapes: {name}")
 
 
 def test_fake_cuda_vocabulary_transform(fake_cuda):
+    _outcome(fake_cuda, "vocabulary transform")
+
+
+def _vocabulary_transform(fake_mode):
     """``Vocabulary.transform`` with the tree's tensors as fake cuda tensors."""
     from torch._subclasses.fake_tensor import FakeTensor
 
@@ -287,7 +339,7 @@ def test_fake_cuda_vocabulary_transform(fake_cuda):
     voc = Vocabulary.train(desc, k=3, L=2, generator=torch.Generator().manual_seed(0))
     ref = voc.transform(desc)
     names = ("parent", "node_desc", "node_weight", "node_word", "word_node", "children", "is_leaf")
-    with fake_cuda() as mode:
+    with fake_mode() as mode:
         for n in names:  # what Vocabulary.to("cuda") does, on fakes of the CPU tree
             setattr(voc, n, mode.from_tensor(getattr(voc, n)).to("cuda"))
         voc.device = torch.device("cuda")
@@ -298,8 +350,12 @@ def test_fake_cuda_vocabulary_transform(fake_cuda):
 
 
 def test_fake_cuda_catches_a_cpu_constant(fake_cuda):
+    _outcome(fake_cuda, "cpu constant")
+
+
+def _cpu_constant_raises(fake_mode):
     """The check above can fail: a CPU constant (no ``device=``) mixed with cuda tensors raises."""
-    with fake_cuda(), pytest.raises(Exception, match="(?i)device"):
+    with fake_mode(), pytest.raises(Exception, match="(?i)device"):
         x = torch.zeros(2, 3, device="cuda")
         x + torch.ones(3)
 
