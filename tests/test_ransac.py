@@ -9,6 +9,7 @@ virtual pinhole, with 0/10/25/40 % planted gross outliers.
 from __future__ import annotations
 
 import collections
+import dataclasses
 
 import cv2
 import numpy as np
@@ -498,6 +499,25 @@ def test_7point_models_come_in_opencvs_order(device):
         assert all(np.abs(o - m).max() < 1e-6 for o, m in zip(ours, cvs)), i
         three += len(cvs) == 3
     assert three >= 100
+
+
+def test_7point_gram_schmidt_forms_are_the_same_bits(device, monkeypatch):
+    """The CPU's elementwise Gram-Schmidt step and the one-pass devices' ``baddbmm``
+    (``_tuning.Strategy.ransac_gs_elementwise``) give the same models and ok bit for bit."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 752, (2000, 7, 2)).astype(np.float32)
+    c = (a + rng.normal(0, 3, a.shape)).astype(np.float32)  # tracker-like: small motions
+    m = torch.from_numpy(np.stack([a, c], 2).astype(np.float64)).to(device)
+    k = _consts(m.device)
+    outs = []
+    for elementwise in (True, False):
+        strategy = dataclasses.replace(_tuning.for_device(m.device), ransac_gs_elementwise=elementwise)
+        with monkeypatch.context() as mp:
+            mp.setitem(_tuning.STRATEGIES, m.device.type, strategy)
+            outs.append(_run_7point(m, k, full=True))
+    (F1, ok1), (F2, ok2) = outs
+    assert ok1.sum() > 2000 and torch.equal(ok1, ok2)
+    assert torch.equal(torch.where(ok1[..., None], F1, 0.0), torch.where(ok2[..., None], F2, 0.0))
 
 
 def test_collinear_check_is_opencvs(device):

@@ -131,12 +131,12 @@ def _front_capturable(p1, p2, valid, confidence, max_iters, states, block):
     has_r = N >= _MIN_RANSAC_POINTS
     Kt = K if has_r else K_l  # samples solved per problem
 
-    pts = _opencv_points(p1, p2, valid)
+    k = _consts(dev)
+    pts = _opencv_points(p1, p2, valid, k.zero)
     x12, eff, n = pts
     if N < _MIN_POINTS:  # static: no problem can estimate
         fit = _unsolved(pts, p1.dtype)
         return fit._replace(overflow=torch.zeros_like(fit.ok))
-    k = _consts(dev)
     tabs = _tables_capturable(tuple(states), N, Kt, M, confidence, dev)
     per_n = tabs.per_n.index_select(0, n)  # (B, 4): row, niters offset, median rank, method
     ge8 = per_n[:, 3] > METHOD_NONE

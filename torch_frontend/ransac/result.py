@@ -132,14 +132,16 @@ class _Points(NamedTuple):
     n: torch.Tensor  # (B,) int64: valid, finite points per problem
 
 
-def _opencv_points(p1: torch.Tensor, p2: torch.Tensor, valid: torch.Tensor) -> _Points:
+def _opencv_points(p1: torch.Tensor, p2: torch.Tensor, valid: torch.Tensor,
+                   zero: Optional[torch.Tensor] = None) -> _Points:
     """OpenCV converts the points to float32 before anything else; the solvers then run in float64.
     A valid slot with a non-finite coordinate is masked out. Masked-out slots become 0: every later
-    ``torch.where`` evaluates both branches, so they must stay finite."""
+    ``torch.where`` evaluates both branches, so they must stay finite. ``zero``: a cached 0-dim
+    float64 zero on the points' device (the capturable path: no scalar-tensor launch per call)."""
     x12 = torch.cat([p1.detach(), p2.detach()], -1).to(torch.float32).to(torch.float64)  # (B, N, 4)
     # a sum of float32-range values is finite iff all are (no overflow in float64)
     eff = valid & (x12.sum(-1).abs() < math.inf)
-    x12 = torch.where(eff[..., None], x12, 0.0)
+    x12 = torch.where(eff[..., None], x12, 0.0 if zero is None else zero)
     return _Points(x12, eff, eff.sum(-1))
 
 

@@ -150,13 +150,17 @@ def _run_7point(m: torch.Tensor, k: _Consts, *, full: bool = False):
     A = (h[:, :, 1, :, None] * h[:, :, 0, None, :]).flatten(-2)  # (M, 7, 9)
     R = torch.cat([A, k.null_rows.expand(M, 2, 9)], 1)  # (M, 9, 9)
     qs = []
+    elementwise = _tuning.for_device(m.device).ransac_gs_elementwise
     for _ in range(_MODEL_POINTS):  # modified Gram-Schmidt: remove row 0 from the rows below it
         g = R @ R[:, :1].transpose(-1, -2)  # (M, rows, 1): <r_0, r_i>
         r0 = R[:, :1]
         qs.append(r0)
-        # elementwise (a baddbmm of this outer product is slower on the CPU; one product and one
-        # difference per entry either way, so the same bits)
-        R = R[:, 1:] - (g[:, 1:] / g[:, :1]) * r0
+        # one product and one difference per entry either way, so the same bits (_tuning: the CPU
+        # is faster elementwise, a device saves a launch with baddbmm)
+        if elementwise:
+            R = R[:, 1:] - (g[:, 1:] / g[:, :1]) * r0
+        else:
+            R = torch.baddbmm(R[:, 1:], g[:, 1:] / g[:, :1], r0, alpha=-1.0)
     # one more (classical) projection against the orthogonalised rows ("twice is enough"): the
     # residual |A P r| drops from ~eps cond(A) |A| |r| (1e-12 on tracker-like samples) to ~eps
     Qr = torch.cat(qs, 1)  # (M, 7, 9)

@@ -12,6 +12,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from typing import Dict, Optional, Sequence, Union
@@ -219,8 +220,6 @@ class FeatureTracker:
         iteration kernel is compiled, for this tracker only (its ``params.lk_compile_step``:
         ``LKOptions.compile_step`` with ``compile_kwargs``; other trackers keep theirs)."""
         if not self.capturable:
-            import dataclasses
-
             self.params = dataclasses.replace(self.params, lk_compile_step=(dict(compile_kwargs) or True) if enable
                                               else False)
             return

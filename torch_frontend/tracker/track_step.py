@@ -25,10 +25,8 @@ import warnings
 from typing import Optional, Tuple
 
 import torch
-import torch.utils._pytree as pytree
 
-from .. import _tuning
-from .._autodiff import derivative_wanted, has_tangent, is_vmapped, straight_through
+from .._autodiff import derivative_wanted, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
 from .clock import ClockDecision, count_published, mono_clock
 from .frame import FeatureFrame
@@ -219,24 +217,9 @@ def check_inputs(state: TrackerState, params: TrackerParams, images, timestamps,
 def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams, *, right: Optional[Tensor],
               active: Tensor, stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
     """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
-    bool, all on the state's device)."""
-    if params.differentiable and _forward_mode(state, img, right, params):
-        # forward-mode AD (torch.func.jvp, dual tensors): every kernel in its reference
-        # (out-of-place) form, as forward AD does not go through the fast forms' out= buffers
-        with _tuning.reference_forms():
-            return _step_mode(state, img, t, params, right, active, stage)
-    return _step_mode(state, img, t, params, right, active, stage)
-
-
-def _forward_mode(state: TrackerState, img: Tensor, right: Optional[Tensor], params: TrackerParams) -> bool:
-    """Some input of the step (images, state, camera parameters) has a forward-mode tangent."""
-    leaves = [img, right, *pytree.tree_leaves(state), *params.camera.parameters()]
-    if params.camera1 is not None:
-        leaves += list(params.camera1.parameters())
-    return any(isinstance(x, Tensor) and has_tangent(x) for x in leaves)
-
-
-def _step_mode(state, img, t, params, right, active, stage):
+    bool, all on the state's device). Under ``torch.func`` transforms and forward-AD dual tensors
+    every kernel takes its differentiable reference form where its own tensors carry a derivative
+    (``_tuning.inplace_ok``), so no step-wide switch is needed."""
     if params.mode == "mono":
         return _mono(state, img, t, params, active, stage)
     return _fusion(state, img, t, right, params, active, stage)
