@@ -122,7 +122,7 @@ class _Cache:
         self.entries: collections.OrderedDict[tuple, Any] = collections.OrderedDict()
         self.lock = threading.Lock()
         self.hits = self.misses = self.rebuilt = 0
-        self._build_in_graph = None
+        self._build_outside = None
 
     def lookup(self, args: tuple) -> Any:
         if torch.compiler.is_compiling():
@@ -148,12 +148,10 @@ class _Cache:
         return value
 
     def _miss_outside_graph(self, args: tuple) -> Any:
-        if self._build_in_graph is None:
-            self._build_in_graph = torch.compiler.disable(self.lookup_eager)
-        return self._build_in_graph(args)
-
-    def lookup_eager(self, args: tuple) -> Any:
-        return self.lookup(args)
+        # torch.compiler.disable imports dynamo: made on the first miss while compiling
+        if self._build_outside is None:
+            self._build_outside = torch.compiler.disable(self.lookup)
+        return self._build_outside(args)
 
     def clear(self) -> None:
         with self.lock:

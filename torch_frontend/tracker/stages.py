@@ -352,7 +352,7 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
     if detection.detect is not None:  # capturable: every stream ran
         return table.append(res.pts, res.valid & detection.detect.unsqueeze(-1)), res.overflow & detection.detect
     pts, valid = res.pts, res.valid
-    if rows.numel() != table.batch:  # the other streams add nothing
+    if rows.numel() != table.batch:  # the other streams add nothing (fresh zeros: filled in place)
         pts = pts.new_zeros(table.batch, pts.shape[1], 2).index_copy_(0, rows, pts)
         valid = valid.new_zeros(table.batch, valid.shape[1]).index_copy_(0, rows, valid)
     return table.append(pts, valid), None
