@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# torch-frontend on a CUDA machine (issue 18): the CUDA tests, then the pipeline benchmark for
+# torch-frontend on a CUDA machine: the CUDA tests, then the pipeline benchmark for
 # B in {1, 16, 64, 256} (eager = the capturable CUDA path, and one compiled row with CUDA graphs).
 # Writes benchmarks/results/pipeline_cuda.{json,md} (temp + rename). Budget: under 8 minutes on an
 # H100-class GPU (tests ~2 min, eager rows ~2 min, the compiled row's graph build ~2-3 min).
@@ -27,3 +27,13 @@ args=(--device cuda --batches 1 16 64 256 --threads 1 --out-name pipeline_cuda)
 if [ "${GPU_COMPILE:-1}" != "0" ]; then args+=(--compile); fi
 "$PY" benchmarks/bench_pipeline.py "${args[@]}"
 echo "gpu.sh: total $(( $(date +%s) - start )) s; results in benchmarks/results/pipeline_cuda.{json,md}"
+# the modelled figures of this same tree beside the measured ones (roofline.py runs on a simulated
+# device, so it needs no GPU time: skipped where ../shared/tools/cuda_sim is absent)
+if [ -f ../shared/tools/cuda_sim/roofline.py ]; then
+  "$PY" benchmarks/roofline_report.py run --B 1 16 64 256 --out benchmarks/results/roofline_modelled.json
+  "$PY" benchmarks/roofline_report.py beside --measured benchmarks/results/pipeline_cuda.json \
+    --modelled benchmarks/results/roofline_modelled.json --out benchmarks/results/pipeline_cuda_vs_model.md
+  echo "gpu.sh: measured beside modelled in benchmarks/results/pipeline_cuda_vs_model.md"
+else
+  echo "gpu.sh: ../shared/tools/cuda_sim/roofline.py not found: no modelled figures beside the measured ones"
+fi

@@ -19,6 +19,7 @@ again. Every launch has a deadline: a hanging rank fails the test, it cannot han
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import multiprocessing
 import os
@@ -88,6 +89,8 @@ def _rank_main(rank: int, world: int, port: int, argv: List[str], logdir: str, e
     os.dup2(out.fileno(), 1)
     os.dup2(err.fileno(), 2)
     sys.stdout, sys.stderr = out, err
+    # a rank the deadline finds still running dumps every thread's stack into its .err before the kill
+    faulthandler.register(signal.SIGUSR1, file=err, all_threads=True)
     torch.set_num_threads(1)
     rc = 99
     try:
@@ -120,6 +123,10 @@ def run_ranks(argv, logdir: Path, world: int = 2, kill_rank: Optional[int] = Non
             killed = True
         time.sleep(0.01)
     hung = [r for r, p in enumerate(procs) if p.is_alive()]
+    for r in hung:
+        os.kill(procs[r].pid, signal.SIGUSR1)  # its stacks into {r}.err (faulthandler)
+    if hung:
+        time.sleep(1.0)
     for p in procs:
         if p.is_alive():
             p.kill()
