@@ -26,7 +26,6 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import Dict, List
 
@@ -60,13 +59,21 @@ def run(argv: List[str]) -> int:
     return subprocess.call(cmd, env=env)
 
 
+def _write_atomic(path, data: bytes) -> None:
+    """The benchmarks' temp + rename writer (``_common.write_atomic``): whole or not at all."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _common import write_atomic
+
+    write_atomic(path, data)
+
+
 def _load(paths: List[str]) -> Dict[int, dict]:
     res: Dict[int, dict] = {}
     for p in paths:
         with open(p) as f:
             d = json.load(f)
         for b, fig in d["results"].items():
-            res[int(b)] = fig
+            res[int(b)] = dict(fig, warmup=d.get("warmup"))
     return res
 
 
@@ -103,6 +110,8 @@ def render(argv: List[str]) -> int:
     a = ap.parse_args(argv)
     before, after = _load(a.before), _load(a.after)
     Bs = sorted(set(before) | set(after))
+    runs = sorted({(f.get("steps"), f.get("warmup")) for f in after.values()}, key=str)
+    means = "; ".join(f"{st} steps after {wu} warm-up steps" for st, wu in runs)
     lines = [
         "# Modelled GPU figures of the capturable step (roofline.py)",
         "",
@@ -110,7 +119,7 @@ def render(argv: List[str]) -> int:
         "(`configs/euroc.yaml`, the package's sample frames with a moving warp per stream) on a simulated CUDA",
         "device, records the bytes and FLOPs of every kernel, and models each as `max(launch floor, bytes /",
         "bandwidth, FLOPs / peak)`; the figures below are the " + DEVICE + " in CUDA-graph mode (2.5 µs per node),",
-        f"means over {STEPS} steps after {WARMUP} warm-up steps (published and unpublished alike). "
+        f"means per step ({a.after_label}: {means}; an even count weighs published and unpublished steps alike). "
         "`benchmarks/gpu.sh` on a real GPU",
         "prints measured times beside the same model. Made by",
         "`benchmarks/roofline_report.py` (its docstring has the commands).",
@@ -146,13 +155,9 @@ def render(argv: List[str]) -> int:
             lines.append(f"\nLargest tensor ({a.after_label if B in after else a.before_label}): "
                          f"{big[0] / MB:,.1f} MB, {big[1][4]}{list(big[1][3])} from `{big[1][1]}` at `{big[1][2]}`.")
     text = "\n".join(lines) + "\n"
-    out = Path(a.out)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=".roofline", suffix=".md")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, out)  # whole or not at all
+    _write_atomic(a.out, text.encode())
     print(text)
-    print(f"written {out}")
+    print(f"written {a.out}")
     return 0
 
 
@@ -178,11 +183,7 @@ def beside(argv: List[str]) -> int:
         m = (lambda k, t=t: f"{t[k] * 1e3:.2f}" if t else "–")  # noqa: E731
         lines.append(f"| {r['B']} | {'yes' if r.get('compiled') else 'no'} | {r['torch_ms_per_step']:.2f} | "
                      f"{m('H100:eager')} | {m('H100:graph')} | {m('H200:eager')} | {m('H200:graph')} |")
-    out = Path(a.out)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=".beside", suffix=".md")
-    with os.fdopen(fd, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    os.replace(tmp, out)
+    _write_atomic(a.out, ("\n".join(lines) + "\n").encode())
     print("\n".join(lines))
     return 0
 

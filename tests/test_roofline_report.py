@@ -42,7 +42,7 @@ def test_render_before_after(tmp_path):
     assert "| 16 | 4,415 → 2,000 |" in text and "0.25 → 0.250" not in text
     assert "| lk | 4,415 → 2,000 | 1,872.0 → 90.0 |" in text
     assert "Modelled, not measured" in text
-    assert not list(tmp_path.glob(".roofline*"))  # the temp file was renamed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "roofline.md"]  # no temp left
 
 
 def test_beside_measured(tmp_path):
