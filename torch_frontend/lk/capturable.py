@@ -54,41 +54,63 @@ def _capturable_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, dev
     ``idx = floor(p) + win + 1`` for window origins inside ``[-win, size)`` (rows ``-win .. size``,
     the shorter padded with ``+inf``), 0 below and ``size + win + 1`` above: one op for the floor,
     the offset, the clamp and the integer conversion. ``idx`` is the window's top-left in the
-    padded level's 4-channel image (:func:`_difference_image`). ``flag`` ``(Hp - 1, Wp, 1)``: 1 at
-    the ``idx`` of inside origins, 0 at the two margins (outside)."""
+    padded level's difference image (:func:`_difference_image`). ``inside`` ``(H + wh + 2, W + ww +
+    2)`` bool: True at the ``idx`` of inside origins, False at the two margins (outside); the
+    iterations gather it straight into their stopping-test buffer."""
     gx = torch.arange(-ww, W + 1, dtype=dtype, device=device)
     gy = torch.arange(-wh, H + 1, dtype=dtype, device=device)
     grid = torch.full((2, max(gx.numel(), gy.numel())), math.inf, dtype=dtype, device=device)
     grid[0, :gx.numel()] = gx
     grid[1, :gy.numel()] = gy
-    r = torch.arange(H + 2 * wh + 1, device=device)
-    c = torch.arange(W + 2 * ww + 2, device=device)
-    flag = (((r >= 1) & (r <= H + wh))[:, None] & ((c >= 1) & (c <= W + ww))[None, :]).to(dtype)
-    return grid, flag.unsqueeze(-1)
+    r = torch.arange(H + wh + 2, device=device)
+    c = torch.arange(W + ww + 2, device=device)
+    inside = ((r >= 1) & (r <= H + wh))[:, None] & ((c >= 1) & (c <= W + ww))[None, :]
+    return grid, inside
 
 
 @cached(32)
-def _capturable_consts(device):
+def _capturable_consts(dtype: torch.dtype, device):
     """OpenCV's bilinear weights as one ``addcmul`` + one product (see :func:`_fixed_weights`):
-    ``T = off + frac * sgn`` ``(2: x/y, m, 5)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10, 2^14,
-    0)``, the weights of the difference image's channels."""
+    ``T = off + frac * sgn`` ``(2: x/y, m, 4)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10,
+    2^14)``, the weights of the difference image's channels; and ``C`` ``(4, 4)`` (``dtype``), the
+    difference image's channels from the 2x2 block's pixels ``(J00, J01, J10, J11)``."""
     f32 = torch.float32
-    off = torch.tensor([[[128.0, 0, 128, 128, 0]], [[128.0, 128, 0, 128, 0]]], dtype=f32, device=device)
-    sgn = torch.tensor([[[-128.0, 128, -128, 0, 0]], [[-128.0, -128, 128, 0, 0]]], dtype=f32, device=device)
-    return off, sgn
+    off = torch.tensor([[[128.0, 0, 128, 128]], [[128.0, 128, 0, 128]]], dtype=f32, device=device)
+    sgn = torch.tensor([[[-128.0, 128, -128, 0]], [[-128.0, -128, 128, 0]]], dtype=f32, device=device)
+    C = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [-1, -1, -1, 1]], dtype=dtype, device=device)
+    return off, sgn, C * 2.0**-9
 
 
-def _difference_image(Jp: torch.Tensor, flag: torch.Tensor) -> torch.Tensor:
-    """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 5)``: at ``(y, x)`` the channels
-    ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]`` and the
-    inside flag (the last column is padding). OpenCV's fixed-point sample ``sum iw_ab J_ab 2^-9`` is
-    then one dot product with ``(iw00, iw01, iw10, 2^14, 0)``: exact (integers times ``2^-9`` below
-    ``2^23``), whatever the order of the multiply-adds."""
-    J = Jp[:, 0]
-    d = torch.stack((J[:, :-1, :-1], J[:, :-1, 1:], J[:, 1:, :-1], J[:, 1:, 1:]), -1)
-    d = torch.cat((d[..., :3] - d[..., 3:], d[..., 3:]), -1) * 2.0**-9
-    d = torch.nn.functional.pad(d, (0, 0, 0, 1))
-    return torch.cat((d, flag.expand(d.shape[:-1] + (1,))), -1)
+def _difference_image(Jp: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
+    """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 4)`` windows' source: at ``(y, x)``
+    the channels ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]``
+    (one ``matmul`` with ``C`` of the stacked pixels: integers times ``0, +-2^-9``, sums of two,
+    exact in any order and in TF32). OpenCV's fixed-point sample ``sum iw_ab J_ab 2^-9`` is then one
+    dot product with ``(iw00, iw01, iw10, 2^14)``: exact (integers times ``2^-9`` below ``2^23``),
+    whatever the order of the multiply-adds.
+
+    The blocks run over the streams' flattened pixels, row pitch ``Wp``: the last column's block
+    wraps into the next row (and the last row's into the next stream); such blocks are read only as
+    the junk column of the pitched windows (zero derivative weight) of outside origins. Returned as
+    a flat ``(B Hp Wp + 1, 4)`` buffer whose last block (read by the last stream's bottom-right
+    margin window only) is zero: every window view stays inside it and every value is finite."""
+    Jf = Jp.reshape(-1)
+    Wp = Jp.shape[-1]
+    L = Jf.numel() - Wp - 1  # blocks with all four pixels inside the buffer
+    S = torch.stack((Jf[:L], Jf[1:L + 1], Jf[Wp:Wp + L], Jf[Wp + 1:]), -1)  # (L, 4)
+    D = torch.empty((Jf.numel() + 1, 4), dtype=S.dtype, device=S.device)
+    D[L:].zero_()
+    torch.matmul(S, C, out=D[:L])
+    return D
+
+
+# The fast iterations keep the step ``sd`` in float64 (the step tests' type: no conversion op);
+# with float32 points its values are float32's (computed in float32, stored exactly). The
+# oscillation test ``fl32(|d + d'|) > float32(0.01)`` then reads ``|d + d'|`` in float64:
+# ``fl32(fl64(x)) = fl32(x)`` for a sum of two float32 (53 >= 2 * 24 + 2 bits), and ``fl32(y) > t``
+# iff ``y > t + ulp(t) / 2`` (``t``'s last bit is 0: the midpoint rounds to ``t``). Likewise
+# ``p + delta`` computed in float64 and stored as float32 is float32's correctly rounded sum.
+_OSC_TEST = {torch.float32: _OSC[torch.float32] + 2.0**-31, torch.float64: _OSC[torch.float64]}
 
 
 def _bmm_exact(device) -> bool:
@@ -174,76 +196,97 @@ def _lk_capturable(
                 overflow = lost if overflow is None else overflow | lost
             continue
         # the difference image's dot products are exact for OpenCV's 8-bit levels only
-        fast = fixed and nxt.rounded and _tuning.inplace_ok(iv, g, lv.Jp, o0) and _bmm_exact(dev)
+        fast = (fixed and nxt.rounded and dtype in _OSC_TEST and _tuning.inplace_ok(iv, g, lv.Jp, o0)
+                and _bmm_exact(dev))
         if fixed and _tuning.inplace_ok(iv, lv.Jp, o0):
             iv = k["c05"] - iv  # 1/2 - template: the rounding's 1/2 and the difference in one op
             iv_init = True
         else:
             iv_init = False
         if fast:
-            grid, flag_img = _capturable_tables(H, W, ww, wh, dtype, dev)
-            J5 = _difference_image(Jpad, flag_img)
-            Hq, Wq = J5.shape[1:3]
-            J5w = J5.as_strided((B, Hq - wh + 1, Wq - ww, wh, ww + 1, 5), (Hq * Wq * 5, Wq * 5, 5, Wq * 5, 5, 1))
-            w_off, w_sgn = _capturable_consts(dev)
+            grid, inside_tab = _capturable_tables(H, W, ww, wh, dtype, dev)
+            w_off, w_sgn, w_C = _capturable_consts(dtype, dev)
+            Hp, Wp = Jpad.shape[-2:]
+            D = _difference_image(Jpad, w_C)
+            # windows (wh, ww + 1, 4) at every top-left (iy, ix), iy <= H + wh + 1, ix <= W + ww + 1
+            Dw = D.as_strided((B, H + wh + 2, W + ww + 2, wh, ww + 1, 4), (Hp * Wp * 4, Wp * 4, 4, Wp * 4, 4, 1))
             hiv = iv.view(M, n, 1)
+            dinv_c = dinv.unsqueeze(1)
+            osc_cmp = _OSC_TEST[dtype]
         else:
             lane = lanes * lv.HWp
             st = (lv.Jp, lv.Jview, lv.jstr, lv.offs, k, lv.spanm1)
+            osc_cmp = osc_thr
         # step = C s dinv with C = ((-A22, A12), (A12, -A11)) 2^-20: the products and the difference
         # as the eager path's (A12 b2 - A22 b1, A12 b1 - A11 b2) (b = s 2^-20, a power of two)
         # even / odd iterations: the step with alternating signs (2, M, 2, 2); the scale and signs
         # are powers of two: exact
         Cs = torch.stack((a22, a12, a12, a11), 1).view(M, 2, 2) * k["step_signs"]
         p = torch.where(proc, o0 - half, zero)  # OpenCV's local nextPt (window origin)
-        # the stopping tests as columns (conv, osc, running) of two alternating bool buffers: one
-        # ``all`` gives the next running mask (iteration j reads tst[j % 2], writes tst[1 - j % 2])
-        tst = torch.empty((2, 3, M), dtype=torch.bool, device=dev)
+        # the stopping tests as columns (conv, osc, running, inside) of two alternating bool buffers:
+        # one ``all`` gives the next running mask (iteration j reads tst[j % 2], writes tst[1 - j % 2])
+        tst = torch.empty((2, 4, M), dtype=torch.bool, device=dev)
         tst[0, 1].fill_(True)  # j = 0: no oscillation test
         tst[0, 2].copy_(ok)
+        if not fast:  # the window test is in the step (a zero step for lanes outside)
+            tst[:, 3].fill_(True)
         sdp = None
         for j in range(budget):
             sg = 1.0 - 2.0 * (j % 2)
+            t, t1 = tst[j % 2], tst[1 - j % 2]
             if fast:
                 idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
-                Wn = J5w[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 5)
+                Wn = Dw[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 4)
+                # the window test, gathered into its column of the test buffer (a lane outside
+                # stops there, as OpenCV's break; its step is finite and never applied)
+                torch.ops.aten.index.Tensor_out(inside_tab, [idx[1], idx[0]], out=t[3])
                 f = torch.remainder(p, 1.0)  # p - floor(p), exact
                 if f.dtype != torch.float32:
                     f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
-                iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 5)
+                iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 4)
                 iw = torch.mul(iw[0], iw[1]).round_()
                 if iw.dtype != dtype:
                     iw = iw.to(dtype)
-                diff = torch.baddbmm(hiv, Wn.view(M, n, 5), iw.unsqueeze(-1)).floor_().view(M, 1, n)
-                flag = Wn[:, 0, 0, 4]
+                diff = torch.baddbmm(hiv, Wn.view(M, n, 4), iw.unsqueeze(-1)).floor_().view(M, 1, n)
+                s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
+                # (m, 2): sg * delta, computed in dtype and stored as float64 (the tests' type)
+                sd = torch.mul((Cs[j % 2] * s.unsqueeze(1)).sum(2), dinv_c,
+                               out=torch.empty((M, 2), dtype=torch.float64, device=dev))
+                dd = so = sd
             else:
                 diff, inside = _window_diff(p, iv, lane, *st, fixed, iv_init)
-                diff = diff.unsqueeze(1)
-                flag = inside.to(dtype)
-            s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
-            sd = (Cs[j % 2] * s.unsqueeze(1)).sum(2) * (dinv * flag).unsqueeze(1)  # (m, 2): sg * delta
-            t, t1 = tst[j % 2], tst[1 - j % 2]
-            dd = sd.detach().double()
+                s = (g * diff.unsqueeze(1)).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
+                sd = (Cs[j % 2] * s.unsqueeze(1)).sum(2) * (dinv * inside.to(dtype)).unsqueeze(1)
+                so = sd.detach()
+                dd = so.double()
             # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
             torch.gt(torch.bmm(dd.unsqueeze(1), dd.unsqueeze(2)).view(M), eps2, out=t[0])
             if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
-                osc = torch.cdist(sd.detach().unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
-                torch.gt(osc, osc_thr, out=t[1])
+                osc = torch.cdist(so.unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
+                torch.gt(osc, osc_cmp, out=t[1])
             else:
-                moved0 = flag > 0
+                moved0 = t[3].clone() if fast else inside
             run = torch.all(t, 0, out=t1[2])
-            if not _tuning.inplace_ok(p, sd):
-                run = run.clone()  # autograd keeps the mask, the buffer is rewritten two iterations on
-            p = torch.addcmul(p, sd.t(), run, value=sg)
-            sdp = sd.detach()
+            if fast:  # in place, computed in float64 and rounded once: fl32(p + delta) (see _OSC_TEST)
+                torch.addcmul(p, sd.t(), run, value=sg, out=p)
+            else:
+                if not _tuning.inplace_ok(p, sd):
+                    run = run.clone()  # autograd keeps the mask, the buffer is rewritten two iterations on
+                p = torch.addcmul(p, sd.t(), run, value=sg)
+            sdp = so
         conv = t[0]  # the last iteration's step test: for a frozen lane, that of its stopping step
         # ---- end of level: the stopping step of the lanes that stopped inside the image
         stopped = ok > run  # ok & ~run: converged, oscillated, or left the image
-        inside = flag > 0  # the last iteration's: where the frozen lanes are
+        if fast:
+            inside = t[3]  # the last iteration's: where the frozen lanes are
         left = stopped > inside  # stopped outside: left the image (OpenCV: status 0 at level 0)
         took = stopped & inside  # converged or oscillated: take the stopping step
-        o = torch.addcmul(p, sd.t(), took, value=sg) + half
-        o = torch.addcmul(o, sd.t(), took & conv, value=-0.5 * sg)  # oscillated: |delta|^2 > eps^2
+        if fast:  # float64 steps: float32 results as above
+            o = torch.addcmul(p, sd.t(), took, value=sg, out=torch.empty_like(p)) + half
+            o = torch.addcmul(o, sd.t(), took & conv, value=-0.5 * sg, out=o)  # oscillated: |delta|^2 > eps^2
+        else:
+            o = torch.addcmul(p, sd.t(), took, value=sg) + half
+            o = torch.addcmul(o, sd.t(), took & conv, value=-0.5 * sg)
         out = torch.where(ok & moved0, o, o0)  # lanes that never moved keep the level's start
         if level == 0:
             status = status & (ok > left)
