@@ -94,3 +94,72 @@ def test_public_name_is_the_function_after_module_import():
     assert callable(tf.clahe) and tf.clahe is clahe
     out = tf.clahe(torch.zeros(1, 16, 16, dtype=torch.uint8))
     assert out.shape == (1, 16, 16) and out.dtype == torch.uint8
+
+
+# sizes that are multiples of the grid, and which block offset each takes: 752x480 (blocks regular
+# in y, 48 / 46 / 47... pixels in x: the float32 cell boundary is off the tile centre), 64x63 with
+# 8x7 tiles (regular in x only), 63x63 with 7x7 tiles (neither: a (B, H, W) offset), 16x8 with
+# 8x8 tiles (1-pixel-high tiles have no second half: the per-cell form)
+_BLOCK_CASES = [((752, 480), 3.0, (8, 8), (16, 30, 752)), ((640, 480), 40.0, (8, 8), (16, 30, 640)),
+                ((300, 200), 2.0, (6, 5), (10, 20, 300)), ((64, 63), 3.0, (8, 7), (63, 16, 4)),
+                ((63, 63), 0.0, (7, 7), (63, 63)), ((63, 63), 3.0, (7, 7), (63, 63)), ((16, 8), 3.0, (8, 8), None)]
+
+
+@pytest.mark.parametrize("wh,clip,grid,shape", _BLOCK_CASES, ids=[f"{c[0][0]}x{c[0][1]}-{c[1]}-{c[2][0]}x{c[2][1]}"
+                                                                  for c in _BLOCK_CASES])
+def test_clahe_block_keys_equal_opencv_and_default(monkeypatch, wh, clip, grid, shape):
+    """The device form of the capturable CLAHE (``Strategy.clahe_block_keys``: one key per pixel for
+    histograms and LUT gather, the 2^23 rounding) == cv2 == the default path, bit for bit."""
+    import dataclasses
+
+    from torch_frontend import _tuning
+    from torch_frontend.equalize import _block_geometry, _clahe_impl
+
+    w, h = wh
+    batch = np.stack([f[:h, :w] for f in _frames(3)])
+    x = torch.from_numpy(batch)
+    dflt = _clahe_impl(x, clip, *grid).image
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", dataclasses.replace(_tuning.CPU, clahe_block_keys=True))
+    blk = _block_geometry(3, h, w, grid[0], grid[1], x.device)
+    assert (blk is None) == (shape is None) and (blk is None or blk.view_shape[1:] == shape)
+    got = _clahe_impl(x, clip, *grid, capturable=True).image
+    assert got.dtype == torch.uint8 and got.is_contiguous() and torch.equal(got, dflt)
+    ref = np.stack([cv2.createCLAHE(clip, grid).apply(np.ascontiguousarray(b)) for b in batch])
+    assert np.array_equal(got.numpy(), ref)
+    assert torch.equal(_clahe_impl(x[1:2], clip, *grid, capturable=True).image, got[1:2])  # B = 1: its row
+
+
+def test_clahe_block_keys_extremes(monkeypatch):
+    """Saturated, constant and two-level images (clipping with every residual, ties of the blend)."""
+    import dataclasses
+
+    from torch_frontend import _tuning
+    from torch_frontend.equalize import _clahe_impl
+
+    g = torch.Generator().manual_seed(3)
+    noise = torch.randint(0, 256, (2, 96, 128), generator=g, dtype=torch.uint8)
+    x = torch.cat([noise, noise // 128 * 255, torch.full((1, 96, 128), 7, dtype=torch.uint8),
+                   torch.zeros(1, 96, 128, dtype=torch.uint8).index_fill_(2, torch.arange(0, 128, 3), 255)])
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", dataclasses.replace(_tuning.CPU, clahe_block_keys=True))
+    for clip in (3.0, 1.0, 0.0):
+        got = _clahe_impl(x, clip, 8, 8, capturable=True).image
+        ref = np.stack([cv2.createCLAHE(clip, (8, 8)).apply(b) for b in x.numpy()])
+        assert np.array_equal(got.numpy(), ref), clip
+
+
+def test_clahe_block_keys_kernels_and_no_sync(monkeypatch):
+    """The device form: no host sync, 23 kernels whatever B (the per-cell form takes 40)."""
+    import dataclasses
+
+    from torch_frontend import _tuning
+    from torch_frontend.equalize import _clahe_impl
+    from torch_frontend.testing.dispatch_count import OpCounter
+
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", dataclasses.replace(_tuning.CPU, clahe_block_keys=True))
+    f = _frames(2)
+    for B in (1, 5):
+        x = torch.from_numpy(np.stack([f[b % 2][:120, :160] for b in range(B)]))
+        _clahe_impl(x, 3.0, 8, 8, capturable=True)  # warm-up: cached geometry
+        with OpCounter() as c:
+            _clahe_impl(x, 3.0, 8, 8, capturable=True)
+        assert c.syncs == 0 and c.kernels <= 23, c.summary()

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from tests.conftest import load_gray, sample_frames
-from torch_frontend.pyramid import Pyramid, build_pyramid, pad_reflect101, pyr_down, scharr_gradients
+from torch_frontend.pyramid import Pyramid, _build_pyramid_impl, build_pyramid, pad_reflect101, pyr_down, scharr_gradients
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
 
@@ -147,3 +147,38 @@ def test_bad_inputs():
         pyr_down(torch.zeros(1, 3, 8, 8))
     with pytest.raises(ConfigError):
         build_pyramid(torch.zeros(1, 1, 8, 8), max_level=-1)
+
+
+@pytest.mark.parametrize("hw", CROPS, ids=[f"{h}x{w}" for h, w in CROPS])
+def test_conv_pyramid_equals_separable_and_cv2(frame, hw, monkeypatch):
+    """``Strategy.pyramid_conv`` (a device's form: one strided 5x5 conv2d with bias 0.5 per level,
+    level 0 a view into the padded image) == the separable CPU form == the cv2.pyrDown chain."""
+    import dataclasses
+
+    from torch_frontend import _tuning
+    from torch_frontend.testing.dispatch_count import OpCounter
+
+    h, w = hw
+    imgs = np.stack([frame[:h, :w], frame[-h:, -w:]])
+    x = torch.from_numpy(imgs)[:, None]
+    ref = build_pyramid(x, max_level=3)
+    monkeypatch.setitem(_tuning.STRATEGIES, "cpu", dataclasses.replace(_tuning.CPU, pyramid_conv=True))
+    _build_pyramid_impl(x, 3, False, True)  # warm-up: cached taps
+    with OpCounter() as c:
+        _build_pyramid_impl(x, 3, False, True)
+    assert c.syncs == 0, c.summary()
+    if min(h, w) >= 16:  # pads smaller than every level: one reflection_pad2d each (else a gather)
+        assert c.kernels == 10, c.summary()  # pad, convert; 3 x (conv, floor); 2 pads
+    got = build_pyramid(x, max_level=3)
+    assert got.rounded
+    for l in range(4):
+        assert got.levels[l].dtype == torch.float32 and torch.equal(got.levels[l], ref.levels[l]), l
+        assert torch.equal(got.grads[l], ref.grads[l]), l
+        assert torch.equal(got.padded(l, 3, 4), ref.padded(l, 3, 4)), l
+    for b in range(2):
+        c = imgs[b]
+        for l in range(1, 4):
+            c = cv2.pyrDown(c)
+            assert np.array_equal(got.levels[l][b, 0].numpy(), c.astype(np.float32)), (b, l)
+    # float input and unrounded levels keep the separable form (their sums need not be exact)
+    assert torch.equal(build_pyramid(x.float(), max_level=2).levels[2], build_pyramid(x.float(), 2).levels[2])

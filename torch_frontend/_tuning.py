@@ -62,6 +62,20 @@ class Strategy:
     ransac_first_round: int
     ransac_round_elems: int
     ransac_compact_elems: int
+    #: ``build_pyramid`` of a uint8 image (OpenCV's rounded 8-bit levels): each level as one strided
+    #: 5x5 ``conv2d`` with the rounding's ``+ 0.5`` as its bias (True) or as the separable 5-tap sums
+    #: (False). Every partial sum is an exact multiple of 1/256 below 2^8 (16 significant bits), so
+    #: both give the same bits in any summation order (TF32 inputs too: 8-bit levels and k / 256
+    #: taps are exact in it). bench (pyramid of 752x480 frames, 1 thread): the CPU is faster
+    #: separable (4.3 vs 5.3 ms at B = 1, 79 vs 156 ms at B = 16); on a device the conv form is 3
+    #: kernels per level instead of ~12 and ~3x fewer bytes (roofline.py)
+    pyramid_conv: bool
+    #: capturable CLAHE of an image that is a multiple of the grid: one int32 key per pixel for the
+    #: histograms and the LUT gather, mixed-dtype elementwise ops (``equalize._clahe_blocks``, True)
+    #: or the per-cell form with its own histogram key (``_clahe_padded``, False): the same bits.
+    #: bench (752x480, 1 thread): the CPU casts mixed-dtype operands with extra copies, 43 vs 8 ms
+    #: per frame; on a device 23 kernels and 41 MB per frame instead of 40 and 65 (roofline.py)
+    clahe_block_keys: bool
     #: RANSAC's 7-point Gram-Schmidt step ``R - (g / g0) r0`` as two elementwise passes (True) or
     #: one ``baddbmm`` of the outer product (False): the same product and difference per entry, so
     #: the same bits; the CPU is faster elementwise, a device saves a launch per step with baddbmm
@@ -130,6 +144,8 @@ CPU = Strategy(
     # bench_ransac.py-style A/B (one process, 150 points): the elementwise update makes the
     # 7-point solver ~10 % faster at B = 1 and 8-21 % at B = 32 than baddbmm
     ransac_gs_elementwise=True,
+    pyramid_conv=False,
+    clahe_block_keys=False,
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -149,6 +165,8 @@ ONE_PASS = Strategy(
     ransac_round_elems=CPU.ransac_round_elems,
     ransac_compact_elems=CPU.ransac_compact_elems,
     ransac_gs_elementwise=False,  # one launch per Gram-Schmidt step (7 per RANSAC call) fewer
+    pyramid_conv=True,
+    clahe_block_keys=True,
 )
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that

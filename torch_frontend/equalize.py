@@ -241,13 +241,27 @@ def _blend(q: torch.Tensor, geo, B: int, H: int, W: int) -> torch.Tensor:
 
 
 def _clahe_capturable(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
-    """:func:`_clahe_impl` in one pass with a fixed op sequence (``capturable=True``).
+    """:func:`_clahe_impl` with a fixed op sequence (``capturable=True``): the same float32
+    arithmetic in the same order as the default path, so the same bits.
 
-    The same float32 arithmetic in the same order as the default path (so the same bits); only
-    how the integers are gathered differs: histograms by ``index_add_`` of ones (int32 atomics on
-    CUDA), and the four tile LUTs of every interpolation cell gathered as bytes with one cached
-    index and read per pixel as one int32 (4 bytes: l11, l12, l21, l22).
+    An image whose size is a multiple of the grid (no histogram padding) takes
+    :func:`_clahe_blocks` (one int32 key per pixel serves the histograms and the LUT gather, ~20
+    kernels); otherwise the histograms of the padded image are counted with their own key
+    (:func:`_clahe_padded`).
     """
+    B, H, W = src.shape
+    if W % gx == 0 and H % gy == 0 and _tuning.for_device(src.device).clahe_block_keys:
+        blk = _block_geometry(B, H, W, gx, gy, src.device)
+        if blk is not None:
+            return _clahe_blocks(src, clip_limit, gx, gy, blk)
+    return _clahe_padded(src, clip_limit, gx, gy)
+
+
+def _clahe_padded(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:
+    """The capturable CLAHE of any size: histograms (of the reflect-101 padded image) by
+    ``index_add_`` of ones (int32 atomics on CUDA), the four tile LUTs of every interpolation
+    cell gathered as bytes with one cached index and read per pixel as one int32 (4 bytes: l11,
+    l12, l21, l22)."""
     B, H, W = src.shape
     hist, geo, _ = _histograms_capturable(src, clip_limit, gx, gy)
     T = gx * gy
@@ -257,6 +271,143 @@ def _clahe_capturable(src: torch.Tensor, clip_limit: float, gx: int, gy: int) ->
     top = _blend(q.view(torch.uint8).view(B * H, W, 4).float(), geo, B, H, W)
     # in [0, 255] up to float rounding: the rounded value converts exactly
     return top.round_().to(torch.uint8).view(B, H, W)
+
+
+# 2^23: adding it to a float32 in [0, 2^22) rounds it to an integer, half to even (the spacing of
+# float32 in [2^23, 2^24) is 1), as cvRound / torch.round; the integer is then the low mantissa
+# bits, so an 8-bit result is byte 0 (little-endian) / 3 (big-endian) of the float32 word
+_ROUND_MAGIC = float(1 << 23)
+_LOW_BYTE = 0 if sys.byteorder == "little" else 3
+
+
+def _clahe_blocks(src: torch.Tensor, clip_limit: float, gx: int, gy: int, blk) -> torch.Tensor:
+    """Capturable CLAHE of ``src (B, H, W)`` uint8 whose size is a multiple of the grid.
+
+    Every tile is cut by the interpolation cell boundaries (tile centres) into 2 x 2 *blocks*
+    (``NB = 4 gx gy``): a block lies in one tile and one cell. One int32 key per pixel,
+    ``(b * 256 + v) * NB + block``, made in one op from the uint8 image and a broadcast offset,
+    serves twice: the block histograms ``(B, 256, NB)`` are counted with ``index_add_`` (int32
+    atomics on CUDA; summed 2 x 2 into the tile histograms), and it indexes the ``(B, 256, NB)``
+    int32 table whose 4 bytes are the cell's four tile LUT values (l11, l12, l21, l22). Tables are
+    value-major (``(B, 256, ...)``), so no transpose is needed anywhere.
+
+    The blend is OpenCV's float32 expression with each product and sum rounded separately, as on
+    the default path, in 4 passes over 4-, 2-, 2- and 1-lane planes; its rounding adds 2^23
+    (:data:`_ROUND_MAGIC`) and keeps the low byte (the LUT's ``cvRound`` likewise).
+    """
+    B, H, W = src.shape
+    NB = 4 * gx * gy
+    T = gx * gy
+    # --- one key per pixel, (B, H, W) order: (b * 256 + v) * NB + block (exact int32 arithmetic)
+    key = torch.add(blk.offset, src.view(blk.view_shape), alpha=NB).view(-1)  # offset broadcast where it can
+    hist = torch.zeros(B * 256 * NB, dtype=torch.int32, device=src.device)
+    hist.index_add_(0, key, blk.ones.expand(key.numel()))
+    # tile histograms (B, 256, T): the 2 x 2 blocks of each tile (block = (2 ty + hy) * 2gx + 2 tx + hx)
+    hist = hist.view(B, 256, gy, 2, gx, 2).sum((3, 5), dtype=torch.int32).view(B, 256, T)
+    if clip_limit > 0.0:
+        hist = _clip_value_major(hist, clip_limit, blk)
+    # LUT = cvRound(cumsum * (255.f / area)) in float32 (in [0, 255] up to rounding: no saturation
+    # needed); the product is rounded to float32 first, then to an integer by the 2^23 addition
+    lut = torch.mul(hist.cumsum(1, dtype=torch.int32), blk.lut_scale).add_(_ROUND_MAGIC)  # (B, 256, T) float32
+    # the four LUT bytes of every (value, block): byte _LOW_BYTE of the float words of its cell's tiles
+    packed = lut.view(torch.uint8).view(B, 256, T * 4).index_select(2, blk.lut_bytes).view(torch.int32)
+    q = packed.view(-1).index_select(0, key).view(torch.uint8).view(B, H, W, 4)  # (l11, l12, l21, l22) bytes
+    # OpenCV: (l11 xa1 + l12 xa) ya1 + (l21 xa1 + l22 xa) ya, every product and sum rounded in float32
+    p = torch.mul(q, blk.xw)  # uint8 * float32 -> float32 (B, H, W, 4): exact conversion, one rounding
+    tb = torch.add(p[..., 0::2], p[..., 1::2])  # (B, H, W, 2): top, bottom
+    tb.mul_(blk.yw)  # (H, 1, 2): ya1, ya
+    r = torch.add(tb[..., 0], tb[..., 1]).add_(_ROUND_MAGIC)  # (B, H, W); cvRound via 2^23
+    return r.view(torch.uint8).view(B, H, W, 4)[..., _LOW_BYTE].contiguous()
+
+
+def _clip_value_major(hist: torch.Tensor, clip_limit: float, blk) -> torch.Tensor:
+    """:func:`_clip_histograms` of value-major ``hist (B, 256, T)`` int32 tile histograms, in place.
+
+    The excess is ``area - sum(min(hist, clip))`` (a tile's bins sum to its area); the residual's
+    one-count-every-``step``-bins pattern is a lookup in a cached ``(256 bins, 256 residuals)`` 0/1
+    table (:attr:`_BlockGeo.extra`). Integer arithmetic: exact."""
+    hist = hist.clamp_max_(max(int(clip_limit * blk.area / 256), 1))
+    excess = torch.rsub(hist.sum(1, keepdim=True, dtype=torch.int32), blk.area)  # (B, 1, T), >= 0
+    hist += blk.extra[blk.i256_col, excess & 255]  # (256, 1) x (B, 1, T) -> (B, 256, T)
+    hist += excess >> 8  # excess // 256 on every bin
+    return hist
+
+
+class _BlockGeo:
+    pass
+
+
+@cached(16)
+def _block_geometry(B, H, W, gx, gy, dev):
+    """Keys, tables and weights of :func:`_clahe_blocks` (sizes and device only; cached), or None
+    when a tile is not cut into exactly 2 x 2 blocks by the cell boundaries (a tile 1 pixel wide)."""
+    th, tw = H // gy, W // gx
+    i32, f32 = torch.int32, torch.float32
+    inv_tw = torch.tensor(1.0, dtype=f32) / torch.tensor(float(tw), dtype=f32)
+    inv_th = torch.tensor(1.0, dtype=f32) / torch.tensor(float(th), dtype=f32)
+    # OpenCV's float32 tile coordinates, as _geometry
+    txf = torch.arange(W, dtype=f32) * inv_tw - 0.5
+    tyf = torch.arange(H, dtype=f32) * inv_th - 0.5
+    tx1, ty1 = torch.floor(txf), torch.floor(tyf)
+    xa, ya = txf - tx1, tyf - ty1
+
+    def halves(t1, n, size):
+        """Per pixel: which half of its tile (0: the cell left of / above the tile centre, 1: the
+        other), or None unless every tile has both halves; the regular half length or None."""
+        tile = torch.arange(n) // size
+        half = t1.long() + 1 - tile  # cell index - tile index: 0 or 1
+        blocks = tile * 2 + half
+        if (bool(((half < 0) | (half > 1)).any()) or bool((blocks[1:] < blocks[:-1]).any())
+                or blocks.unique().numel() != 2 * (n // size)):
+            return None, None
+        counts = torch.bincount(blocks)
+        regular = size % 2 == 0 and bool((counts == size // 2).all())
+        return blocks, (size // 2 if regular else None)
+
+    by, ly = halves(ty1, H, th)
+    bx, lx = halves(tx1, W, tw)
+    if by is None or bx is None:
+        return None
+    geo = _BlockGeo()
+    NB = 4 * gx * gy
+    boff = torch.arange(B)[:, None, None] * (256 * NB)
+    # the offset (b * 256 * NB + block) in one add with the uint8 image: broadcast along the rows
+    # of a block where the blocks are a regular grid in y (or in x), else a (B, H, W) table. (The
+    # float32 cell boundary need not sit at the exact tile centre: 752 / 8 gives blocks 48, 46, 47...)
+    blocks = by[:, None] * (2 * gx) + bx[None, :]  # (H, W)
+    if ly is not None:  # src as (B, 2gy, ly, W), offset (B, 2gy, 1, W)
+        geo.view_shape = (B, 2 * gy, ly, W)
+        off = boff.view(B, 1, 1, 1) + blocks[::ly].view(1, 2 * gy, 1, W)
+    elif lx is not None:  # src as (B, H, 2gx, lx), offset (B, H, 2gx, 1)
+        geo.view_shape = (B, H, 2 * gx, lx)
+        off = boff.view(B, 1, 1, 1) + blocks[:, ::lx].reshape(1, H, 2 * gx, 1)
+    else:
+        geo.view_shape = (B, H, W)
+        off = boff + blocks
+    geo.offset = off.to(dev, i32).contiguous()
+    geo.ones = torch.ones(1, dtype=i32, device=dev)
+    area = th * tw
+    geo.area = area
+    geo.lut_scale = (torch.tensor(255.0, dtype=f32) / torch.tensor(float(area), dtype=f32)).to(dev)
+    # residual -> one extra count on bins 0, s, 2s, ... (the first ``residual`` of them), s = 256 // residual
+    r = torch.arange(256)
+    i = torch.arange(256)[:, None]
+    step = (256 // r.clamp_min(1)).clamp_min(1)[None, :]
+    geo.extra = ((i % step == 0) & (i // step < r[None, :])).to(dev, i32)  # (256 bins, 256 residuals)
+    geo.i256_col = torch.arange(256, device=dev)[:, None]
+    # block -> the tiles of its cell: cell (cy, cx) = (tile + half) blends tiles rows clamp(cy - 1, 0)
+    # and clamp(cy, gy - 1), columns likewise
+    hb = torch.arange(2 * gy)
+    wb = torch.arange(2 * gx)
+    cy = hb // 2 + hb % 2  # cell row 0..gy
+    cx = wb // 2 + wb % 2
+    ry = torch.stack([(cy - 1).clamp_min(0), cy.clamp_max(gy - 1)], -1)  # (2gy, 2): top, bottom tile rows
+    rx = torch.stack([(cx - 1).clamp_min(0), cx.clamp_max(gx - 1)], -1)  # (2gx, 2): left, right tile columns
+    tiles = torch.stack([ry[:, None, a] * gx + rx[None, :, c] for a, c in ((0, 0), (0, 1), (1, 0), (1, 1))], -1)
+    geo.lut_bytes = (tiles.reshape(-1) * 4 + _LOW_BYTE).to(dev, i32)  # (NB * 4,): bytes of (B, 256, T) float32
+    geo.xw = torch.stack((1.0 - xa, xa, 1.0 - xa, xa), -1).to(dev)  # (W, 4)
+    geo.yw = torch.stack((1.0 - ya, ya), -1)[:, None, :].contiguous().to(dev)  # (H, 1, 2)
+    return geo
 
 
 def _clahe_slope(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torch.Tensor:

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from . import _tuning
 from ._autodiff import derivative_wanted, straight_through
-from ._cache import holds_plain_tensors
+from ._cache import cached, holds_plain_tensors
 from ._checks import as_float_image, as_image_batch
 from .errors import ConfigError
 
@@ -273,7 +273,10 @@ def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool,
     levels are the same as in one pass.
     """
     B, _, H, W = img.shape
-    per = _tuning.for_device(img.device).pyramid_streams(B, H, W)
+    strategy = _tuning.for_device(img.device)
+    if strategy.pyramid_conv and round_levels and img.dtype == torch.uint8:
+        return _build_pyramid_conv(img, max_level, with_gradients)
+    per = strategy.pyramid_streams(B, H, W)
     if per is not None and not img.requires_grad:
         parts = [_build_pyramid_impl(img[b0:b0 + per], max_level, with_gradients, round_levels)
                  for b0 in range(0, B, per)]
@@ -293,3 +296,40 @@ def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool,
         levels.append(level)
     grads = [_scharr_impl(t) for t in levels] if with_gradients else None
     return Pyramid(levels, grads, round_levels)
+
+
+# OpenCV's pyrDown taps [1 4 6 4 1]^T [1 4 6 4 1] / 256
+_BINOMIAL5 = (1.0, 4.0, 6.0, 4.0, 1.0)
+
+
+@cached(8)
+def _pyr_down_weights(device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """``(weight (1, 1, 5, 5), bias (1,))`` float32 of :func:`_build_pyramid_conv`: the pyrDown
+    taps / 256 (exact: k / 256 with k <= 36) and the rounding's + 0.5."""
+    k = torch.tensor(_BINOMIAL5, dtype=torch.float32)
+    w = (k[:, None] * k[None, :]) * (1.0 / 256.0)
+    return w.view(1, 1, 5, 5).to(device), torch.full((1,), 0.5, dtype=torch.float32).to(device)
+
+
+def _build_pyramid_conv(img: torch.Tensor, max_level: int, with_gradients: bool) -> Pyramid:
+    """:func:`_build_pyramid_impl` of a uint8 image with rounded levels in 3 kernels per level
+    (``_tuning.Strategy.pyramid_conv``): pad (BORDER_REFLECT_101 by 2), one strided 5x5 ``conv2d``
+    with bias 0.5, ``floor_``: ``floor((sum + 128) / 256)`` = OpenCV's ``(sum + 128) >> 8``.
+
+    Exact in float32 whatever the convolution algorithm's order of summation, fused multiply-adds
+    or TF32 inputs: the grey levels are integers 0..255 and the taps k / 256 (k <= 36), both exact
+    in TF32's 11 bits, and every partial sum (and the + 0.5) is a multiple of 1/256 below 2^8+1,
+    exact in float32's 24 bits. Level 0 is a view into the padded float32 image (the uint8 image
+    is padded first, then converted once: no separate level-0 copy).
+    """
+    weight, bias = _pyr_down_weights(img.device)
+    padded = pad_reflect101(img, 2, 2).to(torch.float32)  # (B, 1, H + 4, W + 4)
+    H, W = img.shape[-2:]
+    levels = [padded[..., 2:H + 2, 2:W + 2]]
+    for level in range(1, max_level + 1):
+        nxt = F.conv2d(padded, weight, bias, stride=2).floor_()  # (B, 1, ceil(H / 2), ceil(W / 2))
+        levels.append(nxt)
+        if level < max_level:
+            padded = pad_reflect101(nxt, 2, 2)
+    grads = [_scharr_impl(t) for t in levels] if with_gradients else None
+    return Pyramid(levels, grads, True)
