@@ -8,7 +8,14 @@ import pytest
 import torch
 
 from tests.conftest import load_gray, sample_frames
-from torch_frontend.pyramid import Pyramid, _build_pyramid_impl, build_pyramid, pad_reflect101, pyr_down, scharr_gradients
+from torch_frontend.pyramid import (
+    Pyramid,
+    _build_pyramid_impl,
+    build_pyramid,
+    pad_reflect101,
+    pyr_down,
+    scharr_gradients,
+)
 
 pytestmark = pytest.mark.usefixtures("single_thread")  # many small ops (conftest)
 
