@@ -193,6 +193,28 @@ def test_no_syncs_and_kernels_independent_of_batch_and_data():
     assert per_state[2] == per_state[16] == counts["B4"] + 1, (per_state, counts)
 
 
+def test_scoring_groups_same_result(monkeypatch):
+    """Scoring the block in groups of problems (``capturable._SCORE_PAIRS``, a memory knob: one
+    group up to B = 18 at 150 points) gives the one-group result (every field, F to the bit); no
+    host sync, and 8 kernels more per extra group (bmm, square, sums, minimum, two tests, and, count)."""
+    sets = _planted(k=2, n=150)[:5]
+    p1, p2, valid, _ = _scatter(sets, 150, np.random.default_rng(7))
+    args = (p1.float(), p2.float(), valid, 1.0, 0.99, 1000, [OPENCV] * valid.shape[0], None)
+    kernels = {}
+    for pairs in (capturable._SCORE_PAIRS, 2 * 3000 * 150):  # 1 group; 3 groups of <= 2 problems
+        monkeypatch.setattr(capturable, "_SCORE_PAIRS", pairs)
+        ransac._find_fundamental_impl(*args, capturable=True)  # warm-up
+        with OpCounter() as c:
+            res = ransac._find_fundamental_impl(*args, capturable=True)
+        assert c.syncs == 0 and c.uploads == 0, c.summary()
+        kernels[pairs] = (c.kernels, res)
+    (k1, one), (k3, grouped) = kernels.values()
+    for a, b in zip(one, grouped):
+        assert torch.equal(a, b) or torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(), b.nan_to_num())
+    assert not one.overflow.any()
+    assert k3 == k1 + 2 * 8, kernels
+
+
 def test_overflow_flag():
     """A block smaller than OpenCV needs: ``overflow`` is True exactly where OpenCV would draw more
     samples (an all-outlier scene needs all 1000; LMedS needs 300); elsewhere the result is exact."""

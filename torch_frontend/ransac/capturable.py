@@ -5,8 +5,9 @@ data, for CUDA graphs and ``torch.compile``.
 The sample tables of every point count 8..N are built once and kept on the device; every problem
 evaluates one fixed block of ``max_iters`` samples (its OpenCV bookkeeping replayed with scans, so
 the default path's result; a smaller block reports ``overflow`` where OpenCV would have drawn
-more). Memory: ~30 MB per problem of 150 points (float64 scores of 3000 models x 150 points); on
-the CPU it is ~15x slower than the default path, which stays the CPU's choice.
+more). Memory: ~18 MB per problem of 150 points (one float64 buffer of 3000 models x 5 terms x
+150 points), problems scored in groups of at most ``_SCORE_PAIRS`` model-point pairs; on the CPU it
+is ~15x slower than the default path, which stays the CPU's choice.
 
 Convention: as ``_find_fundamental_impl``; ``block`` is the number of samples per problem (None:
 ``max_iters``, exact). The shared front (:func:`_front_capturable`) also serves the capturable
@@ -41,10 +42,12 @@ from .samples import OPENCV_SEED, _state_of, _state_samples
 from .scoring import _outer_products, _score_rows, _score_terms
 from .seven_point import _run_7point
 
-#: The capturable path scores the block's RANSAC models in this many pieces (a fixed number, so
-#: the kernel count does not depend on B). Memory knob only: measured at N = 150, K = 1000 (CPU,
-#: peak per problem): 1 piece 28 MB, 297 kernels; 4 pieces 14 MB, 326 kernels.
-_SCORE_CHUNKS = 1
+#: The capturable path scores the block's RANSAC models on groups of problems of at most this many
+#: model-point pairs (``scoring._score_terms``: 40 bytes each, ~3 more for the masks), i.e. ~0.35 GB
+#: of scores at a time: one group (and a kernel count independent of B) up to B = 18 problems of 150
+#: points and 1000 samples; above, 8 kernels more per group (graphs capture per B; at such B the
+#: step is bandwidth-bound). Memory knob only: each problem's scores are the same in any group.
+_SCORE_PAIRS = 1 << 23
 _TABLES = 8  # cached table sets: a tracker needs one
 
 
@@ -115,7 +118,7 @@ class _Front(NamedTuple):
     order: torch.Tensor  # (B, N) int64: valid slots first (valid_first_order)
     Fm: torch.Tensor  # (B, 3 Kt, 9) float64 models, row-major (garbage where not fok)
     fok: torch.Tensor  # (B, 3 Kt) bool
-    rows: torch.Tensor  # (B, 5, 3 Kt, 9): _score_rows of Fm
+    rows: torch.Tensor  # (B, 3 Kt, 5, 9): _score_rows of Fm
     outer: torch.Tensor  # (B, N, 9): h2 (x) h1, 0 at masked-out slots
 
 
@@ -150,7 +153,7 @@ def _front_capturable(p1, p2, valid, confidence, max_iters, states, block):
     Fm, fok = _run_7point(smp, k, full=True)
     Fm = Fm.view(B, Kt * 3, 9)
     fok = fok.view(B, Kt * 3)
-    rows = _score_rows(Fm, k)  # (B, 5, 3 Kt, 9)
+    rows = _score_rows(Fm, k)  # (B, 3 Kt, 5, 9)
     return _Front(B, N, K, K_l, L, has_r, k, tabs, x12, eff, n, per_n, ge8, is_r, order, Fm, fok, rows,
                   _outer_products(x12, eff))
 
@@ -162,14 +165,14 @@ def _lmeds_capturable(sp: _Front):
                                                       sp.rows, sp.outer)
     # the median error of each model over the first 14 valid points
     Wd = min(N, _MIN_RANSAC_POINTS - 1)
-    d2, smin = _score_terms(rows[:, :, : 3 * K_l], outer.gather(1, sp.order[:, :Wd, None].expand(-1, -1, 9)))
+    d2, smin = _score_terms(rows[:, : 3 * K_l], outer.gather(1, sp.order[:, :Wd, None].expand(-1, -1, 9)))
     # scoring._epipolar_errors: inf where a line is degenerate (d2 / 0; 0 / 0 at masked-out slots)
     err = torch.nan_to_num(d2 / smin, nan=math.inf, posinf=math.inf)  # (B, 3 K_l, Wd)
     kth = per_n[:, 2, None, None].expand(-1, 3 * K_l, 1)
     med = err.sort(dim=-1).values.gather(2, kth)[..., 0].clamp_min_(_LMEDS_EXACT_FIT)  # see eager._robust_group
     cand_l, k_l = torch.where(sp.fok[:, : 3 * K_l], med, k.inf).min(-1)  # first minimum: OpenCV's "<"
     have = cand_l < math.inf
-    best = rows.gather(2, k_l[:, None, None, None].expand(-1, 5, 1, 9))  # (B, 5, 1, 9)
+    best = rows.gather(1, k_l[:, None, None, None].expand(-1, 1, 5, 9))  # (B, 1, 5, 9)
     d2, smin = _score_terms(best, outer)
     err = torch.nan_to_num(d2[:, 0] / smin[:, 0], nan=math.inf, posinf=math.inf)  # (B, N)
     sigma = (tabs.sigma.index_select(0, n) * torch.where(have, cand_l, k.zero).sqrt()).clamp_min_(0.001)
@@ -183,16 +186,29 @@ def _lmeds_capturable(sp: _Front):
 
 def _counts_capturable(sp: _Front, thr2: float):
     """RANSAC scoring of the block: the inlier masks ``(B, 3 K, N)`` of every model (OpenCV's test,
-    ``scoring._inlier_mask``'s) and the counts ``(B, 3 K)`` int32, -1 where a sample gave no model."""
-    rows, outer, K = sp.rows, sp.outer, sp.K
-    parts, step = [], -(-3 * K // _SCORE_CHUNKS)
-    for a in range(0, 3 * K, step):
-        d2, smin = _score_terms(rows[:, :, a : a + step], outer)
-        bound = smin if thr2 == 1.0 else smin * thr2
-        parts.append((d2 <= bound) & (smin > 0))  # (B, models, N): _inlier_mask's test
-    mask = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-    # int32 counts: a bool sum into int64 converts the whole mask first (10x slower on the CPU)
-    return mask, torch.where(sp.fok, mask.sum(-1, dtype=torch.int32), sp.k.minus_one)  # -1: no model
+    ``scoring._inlier_mask``'s) and the counts ``(B, 3 K)`` int32, -1 where a sample gave no model.
+
+    Problems are scored in groups of at most ``_SCORE_PAIRS`` model-point pairs (one group up to
+    B = 18 at 150 points), each group's masks and counts written into the batch's (``out=``)."""
+    rows, outer, B, N = sp.rows, sp.outer, sp.B, sp.N
+    M = rows.shape[1]  # 3 K models
+    per = max(1, _SCORE_PAIRS // max(M * N, 1))  # problems per group
+
+    def test(d2, smin, out=None):  # _inlier_mask's test, (b, M, N) bool
+        bound = smin if thr2 == 1.0 else smin * thr2  # x * 1.0 == x: skip a pass (VINS: 1 px)
+        return torch.bitwise_and(d2 <= bound, smin > 0, out=out)
+
+    if B <= per:
+        mask = test(*_score_terms(rows, outer))
+        # int32 counts: a bool sum into int64 converts the whole mask first (10x slower on the CPU)
+        cnt = mask.sum(-1, dtype=torch.int32)
+    else:
+        mask = torch.empty((B, M, N), dtype=torch.bool, device=rows.device)
+        cnt = torch.empty((B, M), dtype=torch.int32, device=rows.device)
+        for b0 in range(0, B, per):
+            g = slice(b0, b0 + per)
+            torch.sum(test(*_score_terms(rows[g], outer[g]), out=mask[g]), -1, dtype=torch.int32, out=cnt[g])
+    return mask, torch.where(sp.fok, cnt, sp.k.minus_one)  # -1: no model
 
 
 def _fit_capturable(sp: _Front, F, inl, ok, iters, overflow, out_dtype) -> FundamentalFit:
@@ -213,7 +229,7 @@ def _find_fundamental_capturable(p1, p2, valid, threshold: float, confidence: fl
     Every problem takes the first ``K`` samples of its OpenCV stream (``K = block``; default and at
     most ``max_iters``, which is exact) from one table look-up (:func:`_tables_capturable`, for
     both methods) and all are solved in one batched 7-point call. RANSAC scores the ``3 K`` models
-    on all points (``_SCORE_CHUNKS`` batched matmuls) and replays OpenCV's loop with scans over the
+    on all points (one batched matmul per group of problems, ``_SCORE_PAIRS``) and replays OpenCV's loop with scans over the
     block: the running best count (``cummax``), the iteration bound after every sample (a table
     look-up), the first sample that reaches its bound, the first strictly better model up to it.
     That is ``eager._robust_group`` in one round, hence its result. LMedS scores the first

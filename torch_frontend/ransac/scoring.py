@@ -60,22 +60,29 @@ def _inlier_mask(F: torch.Tensor, h1: torch.Tensor, h2: torch.Tensor, thr2: floa
 
 
 def _score_rows(F: torch.Tensor, k: _Consts) -> torch.Tensor:
-    """``F (B, K, 9)`` row-major models -> ``(B, 5, K, 9)`` rows mapping a point pair's outer product
+    """``F (B, K, 9)`` row-major models -> ``(B, K, 5, 9)`` rows mapping a point pair's outer product
     ``h2 (x) h1`` to ``x2^T F x1, (F x1)_0, (F x1)_1, (F^T x2)_0, (F^T x2)_1`` (a 0/1 selection: exact),
-    so that one batched matmul scores every model on every point (five planes: contiguous passes)."""
+    so that one batched matmul scores every model on every point. Model-major: the matmul's own
+    output layout (no copy), and any range of models is contiguous per problem."""
     B, K = F.shape[:2]
-    return (F.reshape(B * K, 9) @ k.select).view(B, K, 5, 9).transpose(1, 2).contiguous()
+    return (F.reshape(B * K, 9) @ k.select).view(B, K, 5, 9)
 
 
 def _score_terms(rows: torch.Tensor, outer: torch.Tensor):
-    """``rows (B, 5, K, 9)`` (:func:`_score_rows`, or a slice of it) on ``outer (B, N, 9)`` ->
+    """``rows (B, K, 5, 9)`` (:func:`_score_rows`, or a range of its models) on ``outer (B, N, 9)`` ->
     ``d2 = (x2^T F x1)^2`` and ``smin = min(|(F x1)_xy|^2, |(F^T x2)_xy|^2)`` (``_epipolar_terms``'),
-    each ``(B, K, N)``; both 0 at masked-out slots (their outer product is 0)."""
-    B, _, K = rows.shape[:3]
-    o = torch.bmm(rows.reshape(B, 5 * K, 9), outer.transpose(1, 2))
-    o = o.mul_(o).view(B, 5, K, outer.shape[1])
-    l2 = o[:, 1] + o[:, 2]
-    return o[:, 0], torch.minimum(o[:, 3] + o[:, 4], l2, out=l2)
+    each ``(B, K, N)``; both 0 at masked-out slots (their outer product is 0).
+
+    Both are strided views of the one ``(B, K, 5, N)`` float64 buffer the matmul writes (40 bytes a
+    model-point pair; nothing else of that size is allocated): the squares, the two sums and their
+    minimum are written into its planes in place. Float64 throughout, as OpenCV's
+    ``computeError`` (only its final error is rounded to float)."""
+    B, K = rows.shape[:2]
+    N = outer.shape[1]
+    o = torch.bmm(rows.reshape(B, K * 5, 9), outer.transpose(1, 2)).view(B, K, 5, N)
+    o.mul_(o)
+    o[:, :, 1::2].add_(o[:, :, 2::2])  # planes 1, 3 <- |F x1|_xy^2, |F^T x2|_xy^2 (one launch for both)
+    return o[:, :, 0], torch.minimum(o[:, :, 1], o[:, :, 3], out=o[:, :, 2])
 
 
 def _outer_products(x12: torch.Tensor, eff: torch.Tensor) -> torch.Tensor:
