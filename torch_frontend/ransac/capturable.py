@@ -39,7 +39,7 @@ from .result import (
     _unsolved,
 )
 from .samples import OPENCV_SEED, _state_of, _state_samples
-from .scoring import _outer_products, _score_rows, _score_terms
+from .scoring import _count_terms, _line_features, _line_rows, _outer_products, _score_rows, _score_terms
 from .seven_point import _run_7point
 
 #: The capturable path scores the block's RANSAC models on groups of problems of at most this many
@@ -190,8 +190,9 @@ def _counts_capturable(sp: _Front, thr2: float):
 
     Problems are scored in groups of at most ``_SCORE_PAIRS`` model-point pairs (one group up to
     B = 18 at 150 points), each group's masks and counts written into the batch's (``out=``)."""
-    rows, outer, B, N = sp.rows, sp.outer, sp.B, sp.N
-    M = rows.shape[1]  # 3 K models
+    Fm, outer, B, N = sp.Fm, sp.outer, sp.B, sp.N
+    M = Fm.shape[1]  # 3 K models
+    lines, feats = _line_rows(Fm), _line_features(outer)
     per = max(1, _SCORE_PAIRS // max(M * N, 1))  # problems per group
 
     def test(d2, smin, out=None):  # _inlier_mask's test, (b, M, N) bool
@@ -199,15 +200,16 @@ def _counts_capturable(sp: _Front, thr2: float):
         return torch.bitwise_and(d2 <= bound, smin > 0, out=out)
 
     if B <= per:
-        mask = test(*_score_terms(rows, outer))
+        mask = test(*_count_terms(Fm, lines, outer, feats))
         # int32 counts: a bool sum into int64 converts the whole mask first (10x slower on the CPU)
         cnt = mask.sum(-1, dtype=torch.int32)
     else:
-        mask = torch.empty((B, M, N), dtype=torch.bool, device=rows.device)
-        cnt = torch.empty((B, M), dtype=torch.int32, device=rows.device)
+        mask = torch.empty((B, M, N), dtype=torch.bool, device=Fm.device)
+        cnt = torch.empty((B, M), dtype=torch.int32, device=Fm.device)
         for b0 in range(0, B, per):
             g = slice(b0, b0 + per)
-            torch.sum(test(*_score_terms(rows[g], outer[g]), out=mask[g]), -1, dtype=torch.int32, out=cnt[g])
+            terms = _count_terms(Fm[g], lines[g], outer[g], feats[g])
+            torch.sum(test(*terms, out=mask[g]), -1, dtype=torch.int32, out=cnt[g])
     return mask, torch.where(sp.fok, cnt, sp.k.minus_one)  # -1: no model
 
 
