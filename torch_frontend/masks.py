@@ -26,7 +26,7 @@ import torch
 from ._cache import cached
 from ._checks import check_points, check_shape, default_valid
 from .corners.selection import _resolve_rounds
-from .corners.selection_capturable import _iota, _resolve_fixed, _upper
+from .corners.selection_capturable import _iota, _lower, _pair_conflicts, _resolve_dense
 from .errors import ConfigError
 
 __all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
@@ -254,7 +254,7 @@ def _distance_mask_capturable(pts: torch.Tensor, priority: torch.Tensor, valid: 
     op sequence.
 
     The conflicts resolve in ``rounds`` rounds
-    (:func:`~torch_frontend.corners.selection_capturable._resolve_fixed`); features the rounds leave
+    (:func:`~torch_frontend.corners.selection_capturable._resolve_dense`); features the rounds leave
     undecided are not kept and set ``overflow``. The discs are rasterised as row spans into a
     difference buffer with ``r`` spare rows above and below each stream and one spare column, so
     that no span needs a bounds test (every index is in range). Points that are not kept add 0.
@@ -279,11 +279,13 @@ def _distance_mask_capturable(pts: torch.Tensor, priority: torch.Tensor, valid: 
     flat = (cl * c.stride).sum(-1)
     eligible &= torch.gather(mask.reshape(B, H * W), 1, flat) == 255
 
-    # conflict [j, i] (j visited first, j's disc covers i's pixel), diagonal included
-    d = rxy[:, :, None] - rxy[:, None]
-    conf = (d * d).sum(-1) <= c.r2
-    conf &= _upper(N, dev)
-    keep_sorted, left = _resolve_fixed(conf, eligible, rounds)
+    # conflict [i, j] (j visited first, j's disc covers i's pixel) among N slots and a dump slot
+    # (far from every pixel: no conflicts; _resolve_dense sets its column)
+    q = torch.cat((rxy, c.far.expand(B, 1, 2)), 1)
+    conf = _pair_conflicts(q, c.r2)
+    conf &= _lower(N + 1, dev)
+    keep_sorted, left = _resolve_dense(conf, torch.cat((eligible, c.no.expand(B, 1)), 1), rounds)
+    keep_sorted, left = keep_sorted[:, :N], left[:, :N]
     keep = torch.zeros_like(keep_sorted).scatter_(1, order, keep_sorted)
 
     # row spans of the kept discs: +1 at the start, -1 (255) after the end, one cumsum along x
@@ -317,7 +319,10 @@ def _mask_constants(B: int, H: int, W: int, radius: float, device: torch.device)
     i2 = torch.arange(2, device=device)  # built on the device (no upload, traceable)
     c.size_m1 = i2 * (H - W) + (W - 1)  # (W - 1, H - 1)
     c.stride = i2 * (W - 1) + 1  # (1, W): flat index x + W y
-    c.r2 = int(min(math.floor(float(radius) ** 2), 1 << 62))  # integer d²: d² <= r²  <=>  d² <= floor(r²)
+    # integer d²: d² <= r²  <=>  d² <= floor(r²); beyond every d² of the (clamped) points: no more
+    c.r2 = int(min(math.floor(float(radius) ** 2), 4 * (max(H, W) + 2) ** 2))
+    c.far = torch.full((1, 1, 2), -4 * (max(H, W) + 2), dtype=torch.long, device=device)  # the dump slot
+    c.no = torch.zeros(1, 1, dtype=torch.bool, device=device)
     c.row_base = (_iota(B, device) * (H + 2 * c.r))[:, None]
     return c
 

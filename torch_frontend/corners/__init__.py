@@ -41,21 +41,19 @@ from .responses import (  # noqa: F401
 )
 from .selection import _greedy_accept, _nms_candidates, _resolve_rounds, _select_corners  # noqa: F401
 from .selection_capturable import (  # noqa: F401
-    _FAR,
-    _I32_SPAN,
     _I64_MIN,
     GFTT_BUDGET,
     GreedyBudget,
-    _conflicts,
+    _disc_spans,
+    _distance_threshold,
     _greedy_capturable,
     _iota,
-    _no_autocast,
+    _lower,
+    _pair_conflicts,
     _pixel_table,
-    _resolve_fixed,
-    _round_tables,
+    _resolve_dense,
     _select_corners_capturable,
     _stream_offsets,
-    _upper,
 )
 
 __all__ = ["min_eigen_response", "harris_response", "good_features_to_track"]

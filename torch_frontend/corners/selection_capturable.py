@@ -9,8 +9,8 @@ are ranked by one top-k of a unique integer key (OpenCV's order and tie order) a
 where the budget was too small for OpenCV's exact answer, and wherever it is False the corners are
 the default path's, bit for bit. The budget is sized from measured maxima (:data:`GFTT_BUDGET`).
 
-:func:`_resolve_fixed` (greedy acceptance in a fixed number of rounds) also serves the capturable
-setMask (``masks``).
+:func:`_pair_conflicts` and :func:`_resolve_dense` (greedy acceptance in a fixed number of rounds)
+also serve the capturable setMask (``masks``).
 """
 
 from __future__ import annotations
@@ -28,23 +28,19 @@ __all__ = ["GreedyBudget", "GFTT_BUDGET"]
 
 _I64_MIN = -(1 << 63)  # the key of a non-candidate: below every candidate's key
 
-# The far placeholder of the accepted-corner buffer, per coordinate dtype: farther than
-# min_distance from every pixel (coordinates >= 0, min_distance < |far|). int32 coordinates up to
-# _I32_SPAN keep every d² (to the placeholder too) below 2**31: 2 * (2**14 + 2**13)² < 2**31.
-_FAR = {torch.int32: -(1 << 13), torch.int64: -(1 << 28)}
-_I32_SPAN = 1 << 14
-
 
 class GreedyBudget(NamedTuple):
     """Fixed work of the capturable GFTT selection (per stream and call).
 
     ``block``: candidates kept per stream, the best in OpenCV's order (one top-k). The greedy
-    minimum-distance pass runs in two stages: the ``first`` best candidates resolve among
-    themselves in ``rounds_first`` rounds on a dense ``first x first`` conflict matrix; the rest
-    of the block is tested against the corners accepted there, and its survivors (rank order
-    kept, at most ``survivors`` of them) resolve among themselves in ``rounds`` rounds. Memory
-    per stream ~``13 B x (first² + survivors²) + 9 B x block x max_corners``; kernels
-    ~``130 + 4 x (rounds_first + rounds)`` per call (response included), whatever B and the data.
+    minimum-distance pass then runs in rank *windows*: window 0 holds the ``first`` best
+    candidates; each of the ``windows`` later ones the next ``survivors`` candidates (rank order
+    kept) that no corner accepted so far excludes (a raster of the accepted corners' discs, one
+    gather per candidate). A window resolves among itself on a dense ``(n + 1)²`` bool conflict
+    matrix (n its size, one dump slot) in ``rounds_first`` (window 0) / ``rounds`` rounds of two
+    kernels each. Per stream and window: ~``13 B x n²`` to build the matrix, ``3 B x n²`` a round,
+    ~``2.5 B x H x W`` for the raster (the later windows); kernels ~``40 + 2 x rounds`` a window,
+    whatever B and the data.
     """
 
     block: int
@@ -52,45 +48,48 @@ class GreedyBudget(NamedTuple):
     rounds_first: int
     survivors: int
     rounds: int
+    windows: int = 4
 
 
-#: The tracker's budget: measured maxima with headroom. Measured through these kernels (1,800
-#: calls) on what the tracker sees: max_cnt 150, quality 0.01, min_dist 30 / 25 / 20; the calls of
-#: mono (CLAHE) and fusion (raw) trackers in steady state, with setMask's masks of the tracked
-#: features; and every frame as a first frame (no mask, 150 new corners; CLAHE and raw). Frames:
-#: EuRoC mini cam0 / cam1, V1_01 micro cam0 / cam1, the Middlebury pair, the synthetic flight.
+#: The tracker's budget: measured maxima with headroom. Measured on what the tracker sees:
+#: max_cnt 150, quality 0.01, min_dist 30 / 25 / 20; every frame as a first frame (no mask, 150
+#: new corners; CLAHE and raw) and, with CLAHE, in the steady state (setMask's mask of the
+#: previous frame's OpenCV corners, jittered, ``n_max = 150 - kept``). Frames: EuRoC mini cam0 /
+#: cam1, V1_01 micro cam0 / cam1 (every 4th / 3rd), the Middlebury pair, the synthetic flight
+#: (3,294 calls; windows of 256 candidates).
 #:
 #: ==========================================================  =========  ======  ========
 #: quantity (max over the calls)                               EuRoC      all     budget
 #: ==========================================================  =========  ======  ========
 #: candidate rank OpenCV's answer reaches (150th corner, or    1,995      2,763   8,192
 #: every candidate where a stream runs out)
-#: rounds until every first-stage (1,024) candidate decided    13         13      24
-#: second-stage survivors up to the last kept corner           158        283     768
-#: rounds until every second-stage survivor decided            11         11      24
+#: windows of 256 until the last corner is decided             4          4       5
+#: rounds until window 0 (the 256 best) is decided             10         10      14
+#: rounds until a later window is decided                      12         12      16
 #: ==========================================================  =========  ======  ========
 #:
-#: (the maxima: flight and Middlebury at min_dist 30; rounds: a tight distribution, mode 8.) The
-#: kernel count (~320 per call) depends on the rounds only; the bmm of a round reads
-#: ``4 B x (first² + survivors²)`` per stream.
-GFTT_BUDGET = GreedyBudget(block=8192, first=1024, rounds_first=24, survivors=768, rounds=24)
+#: (1 window: 45 % of the calls, 3: 47 %, 4: 6 %.) The kernel count depends on the windows and
+#: rounds only.
+GFTT_BUDGET = GreedyBudget(block=8192, first=256, rounds_first=14, survivors=256, rounds=16, windows=4)
 
 
 @cached(64)
-def _upper(n: int, device: torch.device) -> torch.Tensor:
-    """(n, n) bool, True on and above the diagonal: ``[j, i]`` with ``j <= i`` in rank (cached)."""
-    return torch.ones(n, n, dtype=torch.bool, device=device).triu()
+def _lower(n: int, device: torch.device) -> torch.Tensor:
+    """(n, n) bool, ``[i, j]`` True iff ``j < i < n - 1``: the strictly higher ranks of every slot
+    but the last (the dump slot, whose row stays empty; cached)."""
+    m = torch.ones(n, n, dtype=torch.bool, device=device).tril(-1)
+    m[n - 1].fill_(False)
+    return m
 
 
 @cached(64)
-def _pixel_table(height: int, width: int, cell: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """Raster index -> ``(x, y)`` (``cell > 0``: ``(x, y, x // cell, y // cell)``): (H*W, 2 | 4)
-    integers, a cached constant (one gather replaces the div / mod / stack per call)."""
+def _pixel_table(height: int, width: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """Raster index -> ``(x, y, y * (width + 1) + x)``: (H*W, 3) integers, a cached constant (one
+    gather replaces the div / mod / stack per call; the third column indexes a raster with one
+    spare column)."""
     i = torch.arange(height * width, device=device)
-    cols = [i % width, torch.div(i, width, rounding_mode="floor")]
-    if cell > 0:
-        cols += [torch.div(cols[0], cell, rounding_mode="floor"), torch.div(cols[1], cell, rounding_mode="floor")]
-    return torch.stack(cols, -1).to(dtype)
+    x, y = i % width, torch.div(i, width, rounding_mode="floor")
+    return torch.stack((x, y, y * (width + 1) + x), -1).to(dtype)
 
 
 @cached(64)
@@ -99,42 +98,26 @@ def _iota(n: int, device: torch.device) -> torch.Tensor:
     return torch.arange(n, device=device)
 
 
-def _resolve_fixed(conf: torch.Tensor, und: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor]:
-    """:func:`.selection._resolve_rounds` with a fixed number of rounds (no host check), 4 kernels a
-    round.
-
-    ``conf`` (B, C, C) bool, transposed conflicts *with the diagonal*: ``conf[b, j, i]`` iff
-    ``j <= i`` in rank and j excludes i (every candidate excludes itself). ``und`` (B, C) bool.
-    Returns ``accepted`` and ``undecided`` (B, C) bool after ``rounds`` rounds. Every decision
-    taken is the sequential greedy one (by induction on rank); all is decided iff ``undecided``
-    is empty, and above the first undecided candidate the result is exact.
-
-    One state ``s`` per candidate: 0 rejected, 1 undecided, A accepted (A a power of two > C).
-    ``c = s @ conf`` is ``s_i`` plus the higher conflicts' states: an undecided candidate has
-    ``c = 1`` when every higher conflict is rejected (accept: s = A), ``2 <= c <= C`` while one is
-    undecided (wait), ``c > A`` once one is accepted (reject: s = 0); an accepted one keeps ``c = A``
-    (its higher conflicts are all rejected). So ``s *= h(c)`` with ``h = A, 1, 0`` on
-    ``c <= 1.5 < c <= A + 0.5 < c``. Integers below 2**24: exact in float32 (TF32 too).
-    """
-    B, C = und.shape
-    A = 1 << max(1, C.bit_length())  # > C
-    dt = torch.float32 if (C + 1) * A < (1 << 24) else torch.float64
-    dev = und.device
-    bounds, table = _round_tables(A, dt, dev)
-    s = und.to(dt).unsqueeze(1)  # (B, 1, C)
-    conf = conf.to(dt)
-    with _no_autocast(dev):  # a lower-precision matmul would not keep the counts exact
-        for _ in range(rounds):
-            s.mul_(table[torch.bucketize(torch.bmm(s, conf), bounds)])
-    s = s.squeeze(1)
-    return s == A, s == 1
+def _distance_threshold(d2_max: int) -> Tuple[torch.dtype, float]:
+    """``(dtype, t)`` such that for integer points, ``cdist(p, p) <= t`` in ``dtype`` iff ``d² <=
+    d2_max``: t is the midpoint of ``sqrt(d2_max)`` and ``sqrt(d2_max + 1)``, which lie many ulps
+    apart (float32 while ``d2_max < 2**18``: the gap ``1 / (2 sqrt(n))`` is >= 16 ulps of
+    ``sqrt(n)``), so cdist's rounding (a few ulps of an exact integer sum of squares) cannot cross
+    it. A negative ``d2_max`` conflicts nothing (t < 0)."""
+    if d2_max < 0:
+        return torch.float32, -1.0
+    dt = torch.float32 if d2_max < (1 << 18) else torch.float64
+    return dt, 0.5 * (math.sqrt(d2_max) + math.sqrt(d2_max + 1))
 
 
-@cached(64)
-def _round_tables(A: int, dtype: torch.dtype, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
-    """:func:`_resolve_fixed`'s bucket bounds ``(1.5, A + 0.5)`` and factors ``(A, 1, 0)`` (cached)."""
-    i = torch.arange(3, device=device, dtype=dtype)  # built on the device (no upload, traceable)
-    return i[:2] * (A - 1) + 1.5, torch.where(i == 0, float(A), (i == 1).to(dtype))
+def _pair_conflicts(p: torch.Tensor, d2_max: int) -> torch.Tensor:
+    """``d² <= d2_max`` of all pairs of ``p`` (B, n, 2) integer points -> (B, n, n) bool: one cdist
+    (4 B a pair in float32, computed directly, not by a matmul) and one comparison, instead of
+    integer differences, squares and sums (~40 B a pair)."""
+    dt, t = _distance_threshold(d2_max)
+    q = p.to(dt)
+    with _no_autocast(p.device):  # autocast would run a float64 cdist in float32
+        return torch.cdist(q, q, compute_mode="donot_use_mm_for_euclid_dist") <= t
 
 
 def _no_autocast(device: torch.device):
@@ -144,71 +127,129 @@ def _no_autocast(device: torch.device):
     return contextlib.nullcontext()
 
 
-def _conflicts(a: torch.Tensor, b: torch.Tensor, r2i: int, cells: bool) -> torch.Tensor:
-    """OpenCV's GFTT conflicts of ``a`` (B, Ca, 2 | 4) and ``b`` (B, Cb, 2 | 4) integer ``(x, y[, cell
-    x, cell y])`` -> (B, Ca, Cb) bool: ``d² < r2i`` (and, with ``cells``, neighbouring grid cells)."""
-    d = a[:, :, None, :2] - b[:, None, :, :2]
-    c = d.mul_(d).sum(-1, dtype=d.dtype) < r2i
-    if cells:
-        c &= (a[:, :, None, 2:] - b[:, None, :, 2:]).abs_().le_(1).all(-1)
-    return c
+def _resolve_dense(conf: torch.Tensor, valid: torch.Tensor, rounds: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Greedy acceptance in a fixed number of rounds (no host check), 2 kernels a round.
 
+    ``conf`` (B, n, n) bool, ``[i, j]`` iff ``j < i`` in rank and j excludes i; the last slot is a
+    dump slot: its row must be empty and its column is overwritten here (``~valid``). ``valid``
+    (B, n) bool: the candidates to decide (the dump slot False). Returns ``accepted`` and
+    ``undecided`` (B, n) bool after ``rounds`` rounds (the dump slot: accepted). Every decision
+    taken is the sequential greedy one (by induction on rank); above the first undecided
+    candidate the result is exact.
 
-def _greedy_capturable(xy: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float, kcap: int,
-                   budget: GreedyBudget) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`.selection._greedy_accept` with a fixed schedule (:class:`GreedyBudget`'s two stages).
-
-    ``xy`` (B, C, 2 | 4) integer positions (and grid cells) in rank order, ``cvalid`` (B, C),
-    ``mc`` (B,) corner budgets <= ``kcap``. Returns ``accepted`` (B, C) bool, ``undecided``
-    (B, C) bool (decisions the rounds left open) and ``n_surv`` (B,) (second-stage survivors,
-    of which only ``budget.survivors`` are resolved). Every decision taken is the sequential
-    greedy one; the result is OpenCV's above the first open decision.
+    One state per slot, 0 rejected / 1 undecided / 2 accepted (``s``), or its complement ``c = 2 -
+    s``. A round is ``c_i = max_j conf[i, j] s_j``: 2 (an accepted higher conflict: reject), 1 (one
+    undecided: wait), 0 (all rejected: accept), i.e. the new state in the complement form; the next
+    round is the mirror ``s_i = min_j (conf[i, j] ? c_j : 2)``. So the rounds alternate between the
+    two forms and need no update kernel. The dump slot (empty row) stays accepted in both forms
+    and every invalid slot conflicts with it (its column), so it is rejected in the first round and
+    stays so; an accepted slot's higher conflicts are all rejected, so it stays accepted.
     """
-    B, C, nc = xy.shape
+    n = conf.shape[-1]
+    torch.logical_not(valid[:, :n - 1], out=conf[:, :n - 1, n - 1])  # the dump slot's row stays empty
+    s = valid.to(torch.uint8)
+    s[:, n - 1].fill_(2)
+    c = torch.empty_like(s)
+    for r in range(rounds):
+        if r % 2 == 0:
+            torch.amax(conf * s[:, None, :], -1, out=c)
+        else:
+            torch.amin(torch.where(conf, c[:, None, :], 2), -1, out=s)
+    if rounds % 2 == 0:
+        return s == 2, s == 1
+    return c == 0, c == 1
+
+
+@cached(32)
+def _disc_spans(d2_max: int, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Row offsets ``dy`` (-rho..rho, rho = isqrt(d2_max)) of the integer disc ``dx² + dy² <=
+    d2_max`` and each row's half width ``isqrt(d2_max - dy²)``: (2 rho + 1,) int64 device constants
+    (cached; built on the device: no upload, traceable)."""
+    rho = math.isqrt(d2_max)
+    dys = torch.arange(2 * rho + 1, device=device) - rho
+    # floor(sqrt(v)) in float64 is isqrt(v) for v < 2**52: sqrt(k² - 1) < k - 1 / (2k) lies far
+    # more than an ulp below k
+    hws = (d2_max - dys * dys).double().sqrt_().floor_().long()
+    return dys, hws
+
+
+def _greedy_capturable(xy: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, r2i: int, height: int, width: int,
+                       budget: GreedyBudget) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`.selection._greedy_accept` with a fixed schedule (:class:`GreedyBudget`'s windows).
+
+    ``xy`` (B, C, 3) integer ``(x, y, y * (width + 1) + x)`` in rank order, ``cvalid`` (B, C),
+    ``mc`` (B,) corner budgets; a conflict is ``d² < r2i``. Returns ``accepted`` (B, C) bool,
+    ``undecided`` (B, C) bool (decisions the rounds left open, or candidates a full window left
+    out) and ``more`` (B,) bool (candidates after the last window were not looked at). Every
+    decision taken is the sequential greedy one; the result is OpenCV's above the first open
+    decision.
+
+    OpenCV's 3x3 grid of cell ``cvRound(min_distance)`` needs no test here: two integer points
+    two cells apart differ by >= cell + 1 > min_distance in a coordinate, so they never conflict.
+    """
+    B, C, _ = xy.shape
     dev = xy.device
-    cells = nc == 4
-    r2i = int(math.ceil(min_distance * min_distance))  # integer d²: d² < r²  <=>  d² < ceil(r²)
-    far = _FAR[xy.dtype]
-    F1 = min(budget.first, C)
-
-    # stage 1: the best F1 candidates, dense
-    cur = xy[:, :F1]
-    und = cvalid[:, :F1] & (mc > 0)[:, None]
-    conf = _conflicts(cur, cur, r2i, cells)  # d = 0 on the diagonal: a conflict, as _resolve_fixed wants
-    conf &= _upper(F1, dev)
-    acc1, left1 = _resolve_fixed(conf, und, budget.rounds_first)
-    if F1 == C:
-        return acc1, left1, torch.zeros(B, dtype=torch.long, device=dev)
-
-    # the accepted corners in rank order in a (B, kcap + 1) buffer: free slots and the dump slot
-    # (beyond kcap, and the rejected) hold a point farther than min_distance from every pixel
-    slot = torch.cumsum(acc1, 1).sub_(1).clamp_max_(kcap)
-    slot = torch.where(acc1, slot, kcap)
-    buf = torch.full((B, kcap + 1, nc), far, dtype=xy.dtype, device=dev)
-    buf.scatter_(1, slot[..., None].expand(B, F1, nc), cur)
-    buf[:, kcap].fill_(far)
-    count = acc1.sum(1)
-
-    # stage 2: the rest, against stage 1's corners; the survivors compacted (rank order kept) into
-    # S slots plus a dump slot, resolved among themselves
-    rest = xy[:, F1:]
-    R = C - F1
-    S = min(budget.survivors, R)
-    und = cvalid[:, F1:] & (count < mc)[:, None]  # streams still collecting
-    und &= ~_conflicts(rest, buf, r2i, cells).any(-1)
-    pos = torch.cumsum(und, 1)  # 1-based survivor index
-    slot = torch.where(und, (pos - 1).clamp_max_(S), S)
-    sur = torch.full((B, S + 1, nc), far, dtype=xy.dtype, device=dev)
-    sur.scatter_(1, slot[..., None].expand(B, R, nc), rest)
-    sv = torch.zeros(B, S + 1, dtype=torch.bool, device=dev)
-    sv.scatter_(1, slot, und)
-    sv[:, S].fill_(False)  # the dump slot is never a candidate
-    conf = _conflicts(sur, sur, r2i, cells)
-    conf &= _upper(S + 1, dev)
-    acc2, left2 = _resolve_fixed(conf, sv, budget.rounds)
-    accepted = torch.cat((acc1, torch.gather(acc2, 1, slot)), 1)
-    undecided = torch.cat((left1, torch.gather(left2, 1, slot)), 1)
-    return accepted, undecided, pos[:, -1]
+    H, W = height, width
+    d2_max = r2i - 1  # integer d²: d² < r2i  <=>  d² <= r2i - 1
+    rho = math.isqrt(d2_max)
+    n0 = min(budget.first, C)
+    n1 = min(budget.survivors, C)
+    nwin = max(budget.windows, 0) if n0 < C else 0
+    rank = _iota(C, dev)
+    accepted = torch.zeros(B, C + 1, dtype=torch.bool, device=dev)  # column C: the dump column
+    undecided = torch.zeros(B, C + 1, dtype=torch.bool, device=dev)
+    count = torch.zeros(B, dtype=torch.long, device=dev)
+    pos = torch.zeros(B, dtype=torch.long, device=dev)  # ranks below pos have been looked at
+    diff = blocked = more = None
+    if nwin:
+        # the accepted corners' discs as row spans: +1 at the start, -1 (255) after the end, rho
+        # spare rows above and below each stream and one spare column (every index in range); a
+        # pixel lies in at most 5 discs (accepted corners are pairwise farther apart than the disc
+        # radius: seen from the pixel they are > 60 degrees apart), so uint8 counts are exact
+        dys, hws = _disc_spans(d2_max, dev)
+        hws1 = hws + 1
+        rowoff = (dys + rho) * (W + 1)  # (2 rho + 1,)
+        base = (_iota(B, dev) * ((H + 2 * rho) * (W + 1)))[:, None]
+        diff = torch.zeros(B * (H + 2 * rho) * (W + 1), dtype=torch.uint8, device=dev)
+        fidx = xy[..., 2].long()  # flat raster index of each candidate
+    for w in range(1 + nwin):
+        n = n0 if w == 0 else n1
+        elig = cvalid & (count < mc)[:, None]  # streams still collecting
+        if w > 0:
+            cover = diff.view(B, H + 2 * rho, W + 1)[:, rho:rho + H].cumsum(-1, dtype=torch.uint8)
+            blocked = cover.view(B, H * (W + 1)).gather(1, fidx) != 0
+            elig &= ~blocked
+            elig &= rank >= pos[:, None]
+        # the window: the first n eligible candidates (rank order kept) in n slots + a dump slot
+        k = torch.cumsum(elig, 1)
+        sel = elig & (k <= n)
+        slot = torch.where(sel, k - 1, n)
+        more = k[:, -1] > n
+        if w < nwin:
+            # the n-th eligible candidate is at rank (k < n).sum(); all ranks after it are open
+            pos = torch.where(more, (k < n).sum(1) + 1, C)
+        wxy = torch.zeros(B, n + 1, 2, dtype=xy.dtype, device=dev)
+        wxy.scatter_(1, slot[..., None].expand(B, C, 2), xy[..., :2])
+        wval = torch.zeros(B, n + 1, dtype=torch.bool, device=dev)
+        wval.scatter_(1, slot, sel)  # every write to the dump slot is False
+        wrank = torch.full((B, n + 1), C, dtype=torch.long, device=dev)
+        wrank.scatter_(1, slot, torch.where(sel, rank, C))
+        conf = _pair_conflicts(wxy, d2_max)
+        conf &= _lower(n + 1, dev)
+        acc, und = _resolve_dense(conf, wval, budget.rounds_first if w == 0 else budget.rounds)
+        acc = acc[:, :n]
+        accepted.scatter_(1, wrank[:, :n], acc)
+        undecided.scatter_(1, wrank[:, :n], und[:, :n])
+        if w < nwin:
+            count += acc.sum(1)
+            x = wxy[:, :n, 0, None].long()
+            x0 = (x - hws).clamp_min_(0)
+            x1 = (x + hws1).clamp_max_(W)
+            row = (wxy[:, :n, 1, None].long() * (W + 1) + base[..., None]) + rowoff
+            inc = acc.to(torch.uint8)[..., None]  # 0 for the slots not accepted
+            diff.index_put_((row + x0,), inc, accumulate=True)
+            diff.index_put_((row + x1,), inc * 255, accumulate=True)
+    return accepted[:, :C], undecided[:, :C], more
 
 
 def _select_corners_capturable(
@@ -269,25 +310,22 @@ def _select_corners_capturable(
         idx = (HW - 1) - srt.indices[:, :Cb]
         cvalid = srt.values[:, :Cb] != float("-inf")
 
+    # int32 positions while the raster index y * (W + 1) + x fits
+    cdt = torch.int32 if H * (W + 1) < (1 << 31) else torch.int64
+    xy = _pixel_table(H, W, cdt, dev).index_select(0, idx.reshape(-1)).view(B, Cb, 3)
     if min_distance < 1:  # OpenCV: no distance test, the first max_corners candidates
-        xy = _pixel_table(H, W, 0, torch.int32, dev).index_select(0, idx.reshape(-1)).view(B, Cb, 2)
-        accepted, undecided = cvalid, None
+        accepted, undecided, more = cvalid, None, None
     else:
-        cell = int(round(min_distance))  # cvRound (half to even)
-        cells = cell < min_distance  # OpenCV's 3x3 cell neighbourhood matters only then
-        # int32 coordinates while d² (also to the far placeholder) stays below 2**31
-        cdt = torch.int32 if max(H, W) <= _I32_SPAN and min_distance < -_FAR[torch.int32] else torch.int64
-        xy = _pixel_table(H, W, cell if cells else 0, cdt, dev).index_select(0, idx.reshape(-1))
-        xy = xy.view(B, Cb, -1)
-        accepted, undecided, n_surv = _greedy_capturable(xy, cvalid, mc, min_distance, K, budget)
+        r2i = int(math.ceil(min_distance * min_distance))  # integer d²: d² < r²  <=>  d² < ceil(r²)
+        accepted, undecided, more = _greedy_capturable(xy, cvalid, mc, r2i, H, W, budget)
 
     cum = torch.cumsum(accepted, 1)  # (B, Cb) int64: accepted up to and including each rank
     n_acc = cum[:, -1]
-    # candidates that were never looked at (beyond the block, or second-stage survivors beyond
-    # their slots: all ranked below every resolved one) matter iff fewer than mc corners were found
+    # candidates that were never looked at (beyond the block, or beyond the last window: all
+    # ranked below every resolved one) matter iff fewer than mc corners were found
     short = n_cand > Cb
-    if undecided is not None:
-        short |= n_surv > min(budget.survivors, max(Cb - budget.first, 0))
+    if more is not None:
+        short |= more
     overflow = short & (n_acc < mc)
     if undecided is not None:
         # the first open decision matters iff fewer than mc corners were accepted above it
