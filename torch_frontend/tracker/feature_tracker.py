@@ -13,21 +13,25 @@ Convention:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 import warnings
-from typing import Dict, Optional, Sequence, Union
+import weakref
+from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 
+import numpy as np
 import torch
 import torch.utils._pytree as pytree
 
 from .._checks import check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig, load_config
+from .clock import HostClock, PublishPlan, publish_plan
 from .frame import FeatureFrame
 from .params import TrackerParams
 from .stages import remove_features, set_prediction
 from .state import TrackerState
-from .track_step import check_inputs, step_impl
+from .track_step import check_active, check_inputs, check_timestamps, step_impl
 
 
 class _StageTimer:
@@ -62,26 +66,46 @@ class _StageSpan:
         return False
 
 
-def _pure_step(state: TrackerState, img, t, params: TrackerParams, right, active):
+def _pure_step(state: TrackerState, img, t, params: TrackerParams, right, active, plan: Optional[PublishPlan] = None):
     """The compiled unit: :func:`step_impl` on validated inputs, no stage hooks (their timers
     synchronise)."""
-    return step_impl(state, img, t, params, right=right, active=active)
+    return step_impl(state, img, t, params, right=right, active=active, plan=plan)
+
+
+def _variant_step(plan: Optional[PublishPlan]) -> Callable:
+    """:func:`_pure_step` with ``plan`` fixed, as a function with a code object of its own: dynamo
+    keeps compiled graphs per code object, so the variants of one closure would share one cache
+    (and its recompile limit); their own code objects make each variant a separate compiled
+    callable, traced and captured once."""
+    def variant(state, img, t, params, right, active):
+        return _pure_step(state, img, t, params, right, active, plan)
+
+    name = "_step_" + ("full" if plan is None else plan.name)
+    variant.__code__ = variant.__code__.replace(co_name=name, co_qualname=name)
+    variant.__name__ = variant.__qualname__ = name
+    return variant
 
 
 class _CompiledStep:
-    """A compiled step with the eager fallback and, for CUDA graphs, outputs cloned out of the
-    graph's memory pool (the next replay overwrites them)."""
+    """The compiled step variants (one per :class:`PublishPlan`, compiled on first use) with the
+    eager fallback and, for CUDA graphs, outputs cloned out of the graph's memory pool (the next
+    replay overwrites them). ``compiler(fn)`` compiles one variant (``torch.compile`` with the
+    tracker's options)."""
 
-    def __init__(self, fn, cuda_graphs: bool, fallback: bool):
-        self.fn, self.cuda_graphs, self.fallback = fn, cuda_graphs, fallback
+    def __init__(self, compiler: Callable[[Callable], Callable], cuda_graphs: bool, fallback: bool):
+        self.compiler, self.cuda_graphs, self.fallback = compiler, cuda_graphs, fallback
+        self.variants: Dict[Optional[PublishPlan], Callable] = {}
         self.failed: Optional[BaseException] = None
 
-    def __call__(self, state, img, t, params, right, active):
+    def __call__(self, state, img, t, params, right, active, plan: Optional[PublishPlan] = None):
         if self.failed is None:
             try:
+                fn = self.variants.get(plan)
+                if fn is None:
+                    fn = self.variants[plan] = self.compiler(_variant_step(plan))
                 if self.cuda_graphs:
                     torch.compiler.cudagraph_mark_step_begin()
-                out = self.fn(state, img, t, params, right, active)
+                out = fn(state, img, t, params, right, active)
                 if self.cuda_graphs:
                     out = pytree.tree_map(lambda x: x.clone() if isinstance(x, torch.Tensor) else x, out)
                 return out
@@ -91,7 +115,13 @@ class _CompiledStep:
                 self.failed = exc
                 warnings.warn(f"FeatureTracker.compile: the compiled step failed ({type(exc).__name__}: {exc}); "
                               f"running eager from now on", RuntimeWarning, stacklevel=3)
-        return _pure_step(state, img, t, params, right, active)
+        return _pure_step(state, img, t, params, right, active, plan)
+
+
+def _host_array(x: torch.Tensor) -> np.ndarray:
+    """A CPU tensor's values as a numpy array (shares the memory; the mirror never writes into it).
+    ``Tensor.numpy`` is the public door; ``np.asarray`` would go through it as well."""
+    return x.numpy()
 
 
 class FeatureTracker:
@@ -210,7 +240,9 @@ class FeatureTracker:
         With ``capturable=True`` the whole step after the input checks is compiled as one graph
         (``fullgraph=True``; on CUDA ``mode="reduce-overhead"``, i.e. CUDA graphs: launches are
         replayed, not issued one by one); ``compile_kwargs`` (``mode``, ``backend``, ``dynamic``,
-        ...) override those defaults. The graph is built on the first call (seconds to minutes);
+        ...) override those defaults. Mono compiles one step per variant (track only, every stream,
+        a sub-batch of 1, 2, 4, ... publishing streams: ``clock.publish_plan``), each when a step
+        first needs it. The graph is built on the first call (seconds to minutes);
         with ``fallback`` (default) a step that fails to compile warns once and runs eager from then
         on, so a tracker never stops because of the compiler. The outputs of a CUDA-graph replay
         live in the graph's memory pool: the step clones the new state and frame out of it, so
@@ -231,7 +263,8 @@ class FeatureTracker:
             opts["mode"] = "reduce-overhead"
         opts.update(compile_kwargs)
         prepare_compile()  # the package's assume_constant_result marks, applied before tracing
-        self._compiled = _CompiledStep(torch.compile(_pure_step, **opts), self.device.type == "cuda", fallback)
+        # one compiled callable per step variant (PublishPlan), each compiled and captured on first use
+        self._compiled = _CompiledStep(functools.partial(torch.compile, **opts), self.device.type == "cuda", fallback)
 
     # ------------------------------------------------------------------ state
     def initial_state(self) -> TrackerState:
@@ -242,6 +275,37 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget everything: all streams start again as at construction."""
         self.state = self.initial_state()
+        self._mirror: Optional[Tuple[weakref.ref, HostClock]] = None
+        if self._plans:
+            self._remember_clock(self.state, HostClock.initial(self.B))
+
+    # ------------------------------------------------------------------ the clock's host mirror
+    @property
+    def _plans(self) -> bool:
+        """The step's variant is chosen on the host (:meth:`_plan`): mono on the capturable path,
+        where the publish-only stages would otherwise run on every stream under masks (the default
+        path skips them already, with syncs that cost nothing on the CPU; fusion publishes every
+        frame)."""
+        return self.capturable and self.mode == "mono"
+
+    def _remember_clock(self, state: TrackerState, host: HostClock) -> None:
+        """``host`` (CPU) is the value of ``state.clock``: the next step from ``state`` plans without
+        reading the device (a weak reference: a state that is gone is not kept alive)."""
+        self._mirror = (weakref.ref(state.clock), host)
+
+    def _host_clock(self, state: TrackerState) -> HostClock:
+        """``state.clock`` on the host: the mirror when ``state`` is the one the last step returned
+        (or the initial state), else read back from the device (a state from elsewhere, e.g. a
+        saved one: one host sync, once; the mirror follows it from then on)."""
+        if self._mirror is not None and self._mirror[0]() is state.clock:
+            return self._mirror[1]
+        return HostClock.of(state.clock)
+
+    def _plan(self, state: TrackerState, t_host: torch.Tensor, active_host: torch.Tensor) -> Tuple[PublishPlan, HostClock]:
+        """The step's variant from the host mirror of the clock (``t_host``, ``active_host`` CPU
+        tensors; the clock's rules in numpy before the upload: no sync) and the mirror after the step."""
+        host, publish = self._host_clock(state).step(_host_array(t_host), _host_array(active_host), self.params)
+        return publish_plan(int(np.count_nonzero(publish)), self.B), host
 
     # ------------------------------------------------------------------ the step
     def step(self, state: TrackerState, images, timestamps, right=None, active=None):
@@ -255,12 +319,27 @@ class FeatureTracker:
             active: optional ``(B,)`` bool; a stream with False is left exactly as it was (its
                 clock, features and ids do not change), e.g. a sequence that has ended while the
                 others go on. Its outputs are empty for this step.
+
+        Capturable mono: the host replays the clock on its own copy (``clock.host_clock_step``) and
+        picks the step's variant (``clock.publish_plan``) before the upload, so unpublished frames
+        skip rejectWithF, setMask and detection without a sync. Give ``timestamps`` and ``active``
+        on the host for that (device tensors are read back: a sync).
         """
+        plan = host = None
+        if self._plans:
+            # the publish decision on the host, before the upload (timestamps and active given on the
+            # device are read back: a sync; host ones cost none)
+            timestamps = check_timestamps(timestamps, self.B, "cpu")
+            plan, host = self._plan(state, timestamps, check_active(active, self.B, "cpu"))
         img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
                                           config_name=f"the config {self.config.path}")
         if self._compiled is not None:
-            return self._compiled(state, img, t, self.params, r, arrived)
-        return step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage)
+            new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
+        else:
+            new, frame = step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage, plan=plan)
+        if host is not None:
+            self._remember_clock(new, host)
+        return new, frame
 
     def track(self, images, timestamps, right=None, active=None) -> FeatureFrame:
         """Process one image per stream (see :meth:`step` for the arguments) and keep the new state."""

@@ -145,6 +145,15 @@ class FeatureTable:
         """Stream b from ``self`` where ``active[b]`` else from ``other`` (same columns present)."""
         return self._map(lambda name, new: where_streams(active, new, getattr(other, name)))
 
+    def streams(self, rows: Tensor) -> FeatureTable:
+        """The streams ``rows (n,)`` int64 of every column, ``(n, K, ...)`` (a sub-batch)."""
+        return self._map(lambda _, v: v.index_select(0, rows))
+
+    def with_streams(self, rows: Tensor, sub: FeatureTable) -> FeatureTable:
+        """A copy with stream ``rows[i]`` of every column replaced by ``sub``'s row i (``rows (n,)``
+        distinct, ``sub`` with the same columns present)."""
+        return self._map(lambda name, v: v.index_copy(0, rows, getattr(sub, name)))
+
     def committed(self) -> FeatureTable:
         """The table as it is stored between steps: empty slots hold ``ids = -1`` and
         ``track_cnt = 0``, a right observation needs a feature, and the step-local columns are dropped."""

@@ -28,7 +28,7 @@ import torch
 
 from .._autodiff import derivative_wanted, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
-from .clock import ClockDecision, count_published, mono_clock
+from .clock import ClockDecision, PublishPlan, count_published, mono_clock
 from .frame import FeatureFrame
 from .params import TrackerParams
 from .stages import (
@@ -215,13 +215,18 @@ def check_inputs(state: TrackerState, params: TrackerParams, images, timestamps,
 
 
 def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams, *, right: Optional[Tensor],
-              active: Tensor, stage=no_stage) -> Tuple[TrackerState, FeatureFrame]:
+              active: Tensor, stage=no_stage, plan: Optional[PublishPlan] = None) -> Tuple[TrackerState, FeatureFrame]:
     """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
     bool, all on the state's device). Under ``torch.func`` transforms and forward-AD dual tensors
     every kernel takes its differentiable reference form where its own tensors carry a derivative
-    (``_tuning.inplace_ok``), so no step-wide switch is needed."""
+    (``_tuning.inplace_ok``), so no step-wide switch is needed.
+
+    ``plan`` (mono, capturable; ``FeatureTracker`` takes it from its host mirror of the clock,
+    ``clock.publish_plan``): which streams run the publish stages. It must hold every stream the
+    clock publishes in this step (at least as many lanes); None runs them on every stream under
+    masks. The outputs are the same for every plan that holds the publishing streams."""
     if params.mode == "mono":
-        return _mono(state, img, t, params, active, stage)
+        return _mono(state, img, t, params, active, stage, plan)
     return _fusion(state, img, t, right, params, active, stage)
 
 
@@ -283,14 +288,48 @@ def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, 
         restarted=decision.restarted, tracked=decision.tracked, timestamps=t, overflow=overflow, **extra)
 
 
-def _mono(state, img, t, params, arrived, stage):
+def _publish_stages(table, img_eq, publish: Tensor, params: TrackerParams, stage):
+    """readImage's published-frame part (spec §3.6 step 7) for the ``publish`` streams:
+    rejectWithF, setMask, addPoints. Returns ``(table, overflow)``."""
+    table, of_f = reject_with_f(table, publish, params.camera, params, stage=stage)
+    table, of_det = _detect(table.replace(prev_pts=None), img_eq, publish, params, stage)
+    return table, merge_overflow(of_f, of_det)
+
+
+def _publish_lanes(table, img_eq, publish: Tensor, lanes: int, params: TrackerParams, stage):
+    """:func:`_publish_stages` on a sub-batch of ``lanes`` streams that holds every publishing one.
+
+    The lanes are the publishing streams first, then non-publishing ones as padding, each group in
+    stream order (a stable sort of the device's own ``publish`` mask: no index upload, no sync;
+    the host chose ``lanes`` only). A non-publishing lane comes out of the masked stages exactly as
+    it went in (identity order, nothing appended), so writing every lane back is exact. Each
+    stream's stages depend on no other stream (RANSAC seeds every problem alike, detection and
+    setMask are per image), so the sub-batch gives the full batch's bits."""
+    rows = torch.sort((~publish).to(torch.uint8), stable=True).indices[:lanes]
+    sub, of = _publish_stages(table.streams(rows), img_eq.index_select(0, rows), publish.index_select(0, rows),
+                              params, stage)
+    full = table.replace(prev_pts=None, is_new=torch.zeros_like(table.valid))
+    if of is not None:
+        of = torch.zeros_like(publish).index_copy(0, rows, of)
+    return full.with_streams(rows, sub), of
+
+
+def _mono(state, img, t, params, arrived, stage, plan: Optional[PublishPlan] = None):
     clock, decision = mono_clock(state.clock, t, arrived, params)
     tracked, publish = decision.tracked, decision.publish
     table, pyr, img_eq, has_prediction, of_lk = _track(state, img, tracked, params, stage)
-    table, of_f = reject_with_f(table, publish, params.camera, params, stage=stage)
-    table, of_det = _detect(table.replace(prev_pts=None), img_eq, publish, params, stage)
+    lanes = table.batch if plan is None else min(plan.lanes, table.batch)
+    if lanes == 0:  # nobody publishes: no rejectWithF, setMask, addPoints; updateID has nothing to number
+        table, of_pub = table.replace(prev_pts=None), None
+    elif lanes < table.batch:
+        table, of_pub = _publish_lanes(table, img_eq, publish, lanes, params, stage)
+    else:
+        table, of_pub = _publish_stages(table, img_eq, publish, params, stage)
     table, velocity = undistorted_points(table, params.camera, t - state.prev_time, params, stage=stage)
-    table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
+    if lanes == 0:
+        next_id = state.next_id
+    else:
+        table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
     clock, sent = count_published(clock, publish)
     new = _commit(state, table, next_id, t, pyr, tracked, params.capturable, clock=clock,
                   has_prediction=has_prediction)
@@ -298,7 +337,7 @@ def _mono(state, img, t, params, arrived, stage):
     # VINS-Mono publishes features tracked at least once after detection (spec §3.11)
     valid = f.valid & (f.track_cnt > 1) & publish.unsqueeze(-1)
     return new, _frame(new, velocity, tracked, valid, f.valid.clone(), decision, sent, t,
-                       merge_overflow(of_lk, of_f, of_det))
+                       merge_overflow(of_lk, of_pub))
 
 
 def _fusion(state, img, t, right, params, arrived, stage):
