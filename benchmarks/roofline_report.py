@@ -37,7 +37,7 @@ DEVICE = "H100"
 #: OpenCV's time per frame on one core (ms), as the tool's OPENCV_MS
 OPENCV_MS = 6.0
 #: measured steps after the warm-up: even, so published and unpublished steps weigh alike
-STEPS, WARMUP = 4, 2
+STEPS, WARMUP = 4, 8
 MB, GB, GIB = 1e6, 1e9, 2.0 ** 30
 
 

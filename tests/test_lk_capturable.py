@@ -21,6 +21,10 @@ from torch_frontend.testing.dispatch_count import OpCounter
 #: searchsorted, gather, 4 for the weights, baddbmm + floor, 2 for b, 4 for the step, 3 for the
 #: step test, 2 for the oscillation test, 1 ``all``, 1 update (see the lk module notes)
 OPS_PER_ITERATION = 21
+#: aten ops per level of the full budget's tail split (lk.capturable._TAIL_FROM): the seat sort (2),
+#: 9 gathers of the lanes' state, the flag of the lanes left without a seat (3), 3 write-backs, less
+#: the 2 ops the split saves at the first tail iteration
+TAIL_OPS = 15
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +110,11 @@ def test_capturable_equals_eager(frames, device, dtype, mode):
         assert e.overflow is None and not s.overflow.any()  # full budget: exact
         if i == 0:
             assert e[1].sum() > 0.6 * e[1].numel() and not e[1].all()  # tracks, and lanes lost at the borders
-    # one level, a non-square window, eps 0 (steps to the cap), few iterations
-    for kw in (dict(max_level=0), dict(max_level=1, win_size=(15, 9)), dict(eps=0.0, max_iters=7)):
+    # one level, a non-square window, eps 0 (steps to the cap), few iterations; the one- and
+    # two-level cases with a tail sub-batch of half the lanes (seats for every lane still running
+    # after 8 iterations there: test_tail_split)
+    for kw in (dict(max_level=0, tail_share=2), dict(max_level=1, win_size=(15, 9), tail_share=2),
+               dict(eps=0.0, max_iters=7)):
         _assert_same(*_both(P, Q, pts, valid, init, dataclasses.replace(opts, **kw)))
 
 
@@ -177,6 +184,45 @@ def test_budget_and_overflow(frames):
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
+def test_tail_split(frames, dtype):
+    """The full budget's split (``tail_share``): after 8 iterations on every lane the rest run on a
+    sub-batch, the running lanes first. With seats for every running lane the result is the eager
+    path's bit for bit (lanes did need more than 8 iterations: an 8-iteration budget differs); a
+    running lane left without a seat raises its stream's overflow flag, and the streams without
+    the flag keep the exact results; ``tail_share=1`` runs every lane every iteration."""
+    prev, nxt, pts = _batch(frames)
+    pts = pts.to(dtype)
+    # one level: the crops' shifts of up to 12 px keep dozens of lanes iterating past 8
+    P, Q = build_pyramid(prev, 0, with_gradients=False), build_pyramid(nxt, 0, with_gradients=False)
+    valid = torch.ones(pts.shape[:2], dtype=torch.bool)
+    opts = lk.LKOptions(max_level=0)
+    exact = _both(P, Q, pts, valid, None, opts, tail_share=1)
+    _assert_same(*exact)
+    e = exact[0]
+    short = _both(P, Q, pts, valid, None, opts, iter_budget=8)[1]  # lanes that need more than 8
+    flags = {}
+    for share in (2, 4, 8):  # 72, 36, 18 seats of 144 lanes
+        s = _both(P, Q, pts, valid, None, opts, tail_share=share)[1]
+        keep = ~s.overflow
+        assert torch.equal(s.pts[keep], e.pts[keep]) and torch.equal(s.status[keep], e.status[keep])
+        if s.overflow.any():
+            assert not torch.equal(s.pts[~keep], e.pts[~keep])  # the flag is not raised for nothing
+        flags[share] = s.overflow
+    # fewer seats, more flags; the tail made exact a stream whose lanes needed more than 8
+    # iterations; with 18 seats some stream is left short
+    assert (flags[2] <= flags[4]).all() and (flags[4] <= flags[8]).all() and flags[8].any()
+    assert (short.overflow & ~flags[2]).any()
+    # the tracker's four levels: the default split is exact on the same lanes (at most 3 a stream
+    # still iterate after 8 iterations there)
+    P4, Q4 = build_pyramid(prev, 3, with_gradients=False), build_pyramid(nxt, 3, with_gradients=False)
+    e4, s4 = _both(P4, Q4, pts, valid, None, lk.LKOptions())
+    _assert_same(e4, s4)
+    for bad in (0, True, 1.5):
+        with pytest.raises(ConfigError, match="tail_share"):
+            lk.LKOptions(tail_share=bad)
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
 def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
     """After a warm-up call (per-size constants cached): 0 host syncs for a whole forward and
     backward LK, the same kernel count for B = 1 and B = 16, and the per-iteration op count."""
@@ -206,8 +252,10 @@ def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
     # float64 points: OpenCV's float32 weights cost two conversions, the step test none
     bound = OPS_PER_ITERATION + (dtype == torch.float64)
     assert per_iteration <= bound, per_iteration
-    # linear in the budget: 27 more iterations on 6 levels (less the overflow bookkeeping)
-    assert counts[1, 3] + 27 * 6 * per_iteration - 12 <= counts[1, None] <= counts[1, 3] + 27 * 6 * per_iteration
+    # linear in the budget: 27 more iterations on 6 levels (less the overflow bookkeeping), plus the
+    # full budget's tail split on each level
+    full = counts[1, 3] + 27 * 6 * per_iteration + 6 * TAIL_OPS
+    assert full - 12 <= counts[1, None] <= full
 
 
 @pytest.mark.parametrize("fixed", [False, True], ids=["float", "fixed_point"])

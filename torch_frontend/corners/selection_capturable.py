@@ -146,7 +146,9 @@ def _resolve_dense(conf: torch.Tensor, valid: torch.Tensor, rounds: int) -> Tupl
     stays so; an accepted slot's higher conflicts are all rejected, so it stays accepted.
     """
     n = conf.shape[-1]
-    torch.logical_not(valid[:, :n - 1], out=conf[:, :n - 1, n - 1])  # the dump slot's row stays empty
+    # the dump slot's column (its row stays empty); a copy into the view, not ``out=`` a strided
+    # view (dynamo breaks the graph there)
+    conf[:, :n - 1, n - 1] = ~valid[:, :n - 1]
     s = valid.to(torch.uint8)
     s[:, n - 1].fill_(2)
     c = torch.empty_like(s)

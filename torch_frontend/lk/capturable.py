@@ -118,6 +118,73 @@ def _bmm_exact(device) -> bool:
     return torch.device(device).type != "cuda" or not torch.backends.cuda.matmul.allow_tf32
 
 
+#: The fast iterations' split (full budget only, ``LKOptions.tail_share``): ``_TAIL_FROM``
+#: iterations on every lane, then the rest of ``max_iters`` on a fixed sub-batch of
+#: ``_tail_lanes(...)`` lanes, the running ones first. OpenCV stops most lanes early (converged or
+#: oscillating): on EuRoC V1_01 (95 frames, 380 level passes of 150 lanes) at most 2 lanes ran past
+#: 8 iterations (10 past 6, none past 12), so the other ~22 of the 30 iterations of every lane were
+#: masked no-ops that moved ~half of the capturable step's bytes. A lane still running after
+#: ``_TAIL_FROM`` that finds no seat stops there and raises its stream's ``overflow`` flag (the one
+#: case where the result may differ from OpenCV's); with a seat, the result is the full budget's
+#: bit for bit. ``_TAIL_FROM`` and the budget's rest are even: the iterations alternate two test
+#: buffers and the step's sign, so the lanes left behind stay on the parity the level's end reads.
+_TAIL_FROM = 8
+#: the sub-batch's least seats (``tail_share`` gives an eighth of the lanes by default)
+_TAIL_MIN_LANES = 16
+
+
+def _tail_lanes(M: int, budget: int, share: int) -> int:
+    """Seats of the tail sub-batch for ``M`` lanes, a level budget and ``tail_share`` (0: no split)."""
+    m2 = max(_TAIL_MIN_LANES, -(-M // share))
+    if budget <= _TAIL_FROM or (budget - _TAIL_FROM) % 2 or m2 >= M:
+        return 0
+    return m2
+
+
+def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0=None):
+    """Iterations ``j0 .. j1 - 1`` of the fast (8-bit, fixed-point, no gradient) path on ``m`` lanes,
+    in place in ``p (2, m)`` and the test buffers ``tst (2, 4, m)``. ``tabs``: the level's
+    ``(Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp)``. Returns ``(sd, sdp, moved0)``: the
+    last iteration's step (float64, signed as its parity), the one before, and (when ``j0 == 0``)
+    the window test of the first iteration."""
+    Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp = tabs
+    m, n = hiv.shape[0], hiv.shape[1]
+    dtype = p.dtype
+    sd = None
+    for j in range(j0, j1):
+        sg = 1.0 - 2.0 * (j % 2)
+        t, t1 = tst[j % 2], tst[1 - j % 2]
+        idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
+        Wn = Dw[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 4)
+        # the window test, gathered into its column of the test buffer (a lane outside
+        # stops there, as OpenCV's break; its step is finite and never applied)
+        torch.ops.aten.index.Tensor_out(inside_tab, [idx[1], idx[0]], out=t[3])
+        f = torch.remainder(p, 1.0)  # p - floor(p), exact
+        if f.dtype != torch.float32:
+            f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
+        iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 4)
+        iw = torch.mul(iw[0], iw[1]).round_()
+        if iw.dtype != dtype:
+            iw = iw.to(dtype)
+        diff = torch.baddbmm(hiv, Wn.view(m, n, 4), iw.unsqueeze(-1)).floor_().view(m, 1, n)
+        s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
+        # (m, 2): sg * delta, computed in dtype and stored as float64 (the tests' type)
+        sd = torch.mul((Cs[j % 2] * s.unsqueeze(1)).sum(2), dinv_c,
+                       out=torch.empty((m, 2), dtype=torch.float64, device=p.device))
+        # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
+        torch.gt(torch.bmm(sd.unsqueeze(1), sd.unsqueeze(2)).view(m), eps2, out=t[0])
+        if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
+            osc = torch.cdist(sd.unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(m)
+            torch.gt(osc, osc_cmp, out=t[1])
+        else:
+            moved0 = t[3].clone()
+        run = torch.all(t, 0, out=t1[2])
+        # in place, computed in float64 and rounded once: fl32(p + delta) (see _OSC_TEST)
+        torch.addcmul(p, sd.t(), run, value=sg, out=p)
+        sdp = sd
+    return sd, sdp, moved0
+
+
 def _lk_capturable(
     prev: Pyramid,
     nxt: Pyramid,
@@ -231,49 +298,51 @@ def _lk_capturable(
         if not fast:  # the window test is in the step (a zero step for lanes outside)
             tst[:, 3].fill_(True)
         sdp = None
-        for j in range(budget):
+        if fast:
+            tabs = (Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp)
+            m2 = _tail_lanes(M, budget, opts.tail_share) if budget == opts.max_iters else 0
+            n1 = _TAIL_FROM if m2 else budget
+            sd, sdp, moved0 = _fast_iterations(0, n1, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs)
+            if m2:
+                # the rest of the budget on m2 lanes, the running ones first (a stable sort of the
+                # device's own mask: no sync); the others are frozen and would only repeat their step
+                running = tst[n1 % 2, 2]
+                rows = torch.sort((~running).to(torch.uint8), stable=True).indices[:m2]
+                sub_p, sub_tst = p.index_select(1, rows), tst.index_select(2, rows)
+                sub_sd, _, _ = _fast_iterations(
+                    n1, budget, sub_p, sub_tst, sdp.index_select(0, rows), lanes.index_select(0, rows),
+                    hiv.index_select(0, rows), g.index_select(0, rows), Cs.index_select(1, rows),
+                    dinv_c.index_select(0, rows), tabs, moved0)
+                # running lanes without a seat stop here (still running: status kept, no stopping step)
+                lost = running.index_fill(0, rows, False).view(B, N).any(1)
+                overflow = lost if overflow is None else overflow | lost
+                p.index_copy_(1, rows, sub_p)
+                tst.index_copy_(2, rows, sub_tst)
+                sd.index_copy_(0, rows, sub_sd)
+            j = budget - 1
             sg = 1.0 - 2.0 * (j % 2)
-            t, t1 = tst[j % 2], tst[1 - j % 2]
-            if fast:
-                idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
-                Wn = Dw[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 4)
-                # the window test, gathered into its column of the test buffer (a lane outside
-                # stops there, as OpenCV's break; its step is finite and never applied)
-                torch.ops.aten.index.Tensor_out(inside_tab, [idx[1], idx[0]], out=t[3])
-                f = torch.remainder(p, 1.0)  # p - floor(p), exact
-                if f.dtype != torch.float32:
-                    f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
-                iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 4)
-                iw = torch.mul(iw[0], iw[1]).round_()
-                if iw.dtype != dtype:
-                    iw = iw.to(dtype)
-                diff = torch.baddbmm(hiv, Wn.view(M, n, 4), iw.unsqueeze(-1)).floor_().view(M, 1, n)
-                s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
-                # (m, 2): sg * delta, computed in dtype and stored as float64 (the tests' type)
-                sd = torch.mul((Cs[j % 2] * s.unsqueeze(1)).sum(2), dinv_c,
-                               out=torch.empty((M, 2), dtype=torch.float64, device=dev))
-                dd = so = sd
-            else:
+            t, run = tst[j % 2], tst[1 - j % 2, 2]
+        else:
+            for j in range(budget):
+                sg = 1.0 - 2.0 * (j % 2)
+                t, t1 = tst[j % 2], tst[1 - j % 2]
                 diff, inside = _window_diff(p, iv, lane, *st, fixed, iv_init)
                 s = (g * diff.unsqueeze(1)).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
                 sd = (Cs[j % 2] * s.unsqueeze(1)).sum(2) * (dinv * inside.to(dtype)).unsqueeze(1)
                 so = sd.detach()
                 dd = so.double()
-            # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
-            torch.gt(torch.bmm(dd.unsqueeze(1), dd.unsqueeze(2)).view(M), eps2, out=t[0])
-            if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
-                osc = torch.cdist(so.unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
-                torch.gt(osc, osc_cmp, out=t[1])
-            else:
-                moved0 = t[3].clone() if fast else inside
-            run = torch.all(t, 0, out=t1[2])
-            if fast:  # in place, computed in float64 and rounded once: fl32(p + delta) (see _OSC_TEST)
-                torch.addcmul(p, sd.t(), run, value=sg, out=p)
-            else:
+                # OpenCV: continue while delta.ddot(delta) > eps^2 (any dot: exact float32 products, one rounding)
+                torch.gt(torch.bmm(dd.unsqueeze(1), dd.unsqueeze(2)).view(M), eps2, out=t[0])
+                if j > 0:  # and not |delta + prevDelta| <= 0.01: |sd - sdp| (alternating signs), inf-norm
+                    osc = torch.cdist(so.unsqueeze(1), sdp.unsqueeze(1), p=math.inf).view(M)
+                    torch.gt(osc, osc_cmp, out=t[1])
+                else:
+                    moved0 = inside
+                run = torch.all(t, 0, out=t1[2])
                 if not _tuning.inplace_ok(p, sd):
                     run = run.clone()  # autograd keeps the mask, the buffer is rewritten two iterations on
                 p = torch.addcmul(p, sd.t(), run, value=sg)
-            sdp = so
+                sdp = so
         conv = t[0]  # the last iteration's step test: for a frozen lane, that of its stopping step
         # ---- end of level: the stopping step of the lanes that stopped inside the image
         stopped = ok > run  # ok & ~run: converged, oscillated, or left the image

@@ -57,6 +57,12 @@ class LKOptions:
             smaller budget bounds the work of the capturable path (on both paths the same
             results); a lane still iterating when it ends may differ from OpenCV, which the
             ``overflow`` field of ``_track_lk_impl``'s :class:`LKResult` reports per stream.
+        tail_share: the capturable path's split of a full budget (``iter_budget`` None): after
+            ``lk.capturable._TAIL_FROM`` (8) iterations on every lane, the rest run on a sub-batch of
+            ``1/tail_share`` of the lanes (at least 16), the running ones first: the work of the
+            masked no-ops of lanes that have stopped (on real frames all but a few) is not done. A
+            lane still running without a seat stops there and raises ``overflow`` (results differ
+            from OpenCV's only there). Default 8; 1: every lane runs every iteration.
         grad_mode: ``"unrolled"`` (default: autograd through every iteration) or ``"implicit"``
             (implicit-function gradient of the level-0 solution; the forward values are the same
             bit for bit).
@@ -78,6 +84,7 @@ class LKOptions:
     fixed_point: bool = True
     capturable: bool = False
     iter_budget: int | Tuple[int, ...] | None = None
+    tail_share: int = 8
     grad_mode: str = "unrolled"
     compile_step: Any = False
 
@@ -94,6 +101,8 @@ class LKOptions:
                       eps=min(max(float(self.eps), 0.0), 10.0), min_eig_threshold=float(self.min_eig_threshold),
                       fixed_point=bool(self.fixed_point), capturable=bool(self.capturable),
                       compile_step=_compile_items(self.compile_step))
+        if isinstance(self.tail_share, bool) or not isinstance(self.tail_share, int) or self.tail_share < 1:
+            raise ConfigError(f"tail_share must be an int >= 1, got {self.tail_share!r}")
         b = self.iter_budget
         if b is not None:
             items = b if isinstance(b, (tuple, list)) else (b,)

@@ -82,7 +82,9 @@ def _score_terms(rows: torch.Tensor, outer: torch.Tensor):
     o = torch.bmm(rows.reshape(B, K * 5, 9), outer.transpose(1, 2)).view(B, K, 5, N)
     o.mul_(o)
     o[:, :, 1::2].add_(o[:, :, 2::2])  # planes 1, 3 <- |F x1|_xy^2, |F^T x2|_xy^2 (one launch for both)
-    return o[:, :, 0], torch.minimum(o[:, :, 1], o[:, :, 3], out=o[:, :, 2])
+    # the minimum in place in plane 1 (``clamp_max_``: the same values for finite squares; an
+    # ``out=`` strided plane would break dynamo's graph)
+    return o[:, :, 0], o[:, :, 1].clamp_max_(o[:, :, 3])
 
 
 def _line_rows(F: torch.Tensor) -> torch.Tensor:
@@ -120,7 +122,7 @@ def _count_terms(F: torch.Tensor, lines: torch.Tensor, outer: torch.Tensor, feat
     d = torch.bmm(F, outer.transpose(1, 2))  # (B, M, N)
     d2 = d.mul_(d)
     L = torch.bmm(lines.reshape(B * 2, M, 9), feats.reshape(B * 2, N, 9).transpose(1, 2)).view(B, 2, M, N)
-    return d2, torch.minimum(L[:, 0], L[:, 1], out=L[:, 0])
+    return d2, L[:, 0].clamp_max_(L[:, 1])  # in place, as _score_terms' minimum
 
 
 def _outer_products(x12: torch.Tensor, eff: torch.Tensor) -> torch.Tensor:

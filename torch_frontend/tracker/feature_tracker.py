@@ -119,9 +119,10 @@ class _CompiledStep:
 
 
 def _host_array(x: torch.Tensor) -> np.ndarray:
-    """A CPU tensor's values as a numpy array (shares the memory; the mirror never writes into it).
-    ``Tensor.numpy`` is the public door; ``np.asarray`` would go through it as well."""
-    return x.numpy()
+    """A CPU tensor's values as a new numpy array (B values: microseconds). A copy, not
+    ``Tensor.numpy``'s alias: the caller's timestamps tensor is uploaded next, and an alias held by
+    the mirror would tie the two (``cuda_sim`` then no longer sees that upload as the input's)."""
+    return np.array(x.tolist(), dtype=np.float64 if x.is_floating_point() else bool)
 
 
 class FeatureTracker:
@@ -148,6 +149,10 @@ class FeatureTracker:
             an int, or a tuple per level, level 0 first). Each iteration is ~21 launches per level
             whatever B, so e.g. ``(16, 14, 12, 10)`` saves ~1,400 launches per step; a point that
             would need more iterations sets ``frame.overflow`` for its stream.
+        lk_tail_share: capturable only, full budget: after 8 LK iterations on every point, the
+            rest run on a sub-batch of ``1/lk_tail_share`` of the points, those still iterating
+            first (on real frames a handful: ~60 % fewer LK bytes than every point every
+            iteration); a point left without a seat sets ``frame.overflow``. 1: no sub-batch.
         differentiable: keep float images float through the step (the learned-VIO path): ``uv``,
             ``xy`` and ``velocity`` of tracked features carry gradients to the images of this and
             earlier steps (through the state) and to the cameras' parameters (after
@@ -178,6 +183,7 @@ class FeatureTracker:
         seed: int = 0,
         capturable: Optional[bool] = None,
         lk_iter_budget=None,
+        lk_tail_share: int = 8,
         differentiable: bool = False,
         grad_mode: str = "implicit",
     ):
@@ -198,6 +204,7 @@ class FeatureTracker:
         try:
             params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask,
                                                capturable=self.capturable, lk_iter_budget=lk_iter_budget,
+                                               lk_tail_share=lk_tail_share,
                                                differentiable=self.differentiable, lk_grad_mode=grad_mode)
         except ValueError as exc:
             raise ValueError(f"config {config.path}: {exc}") from None
@@ -329,8 +336,10 @@ class FeatureTracker:
         if self._plans:
             # the publish decision on the host, before the upload (timestamps and active given on the
             # device are read back: a sync; host ones cost none)
-            timestamps = check_timestamps(timestamps, self.B, "cpu")
-            plan, host = self._plan(state, timestamps, check_active(active, self.B, "cpu"))
+            # (the step's door below converts the caller's own object again: its upload stays the
+            # input upload, one copy, not a copy of a host-side copy)
+            plan, host = self._plan(state, check_timestamps(timestamps, self.B, "cpu"),
+                                    check_active(active, self.B, "cpu"))
         img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
                                           config_name=f"the config {self.config.path}")
         if self._compiled is not None:

@@ -99,6 +99,10 @@ class TrackerParams:
     # per level, level 0 first). A smaller budget is fewer launches per step; a point still
     # iterating when it ends raises frame.overflow (lk.LKOptions.iter_budget)
     lk_iter_budget: Any = None
+    # capturable step only, full budget: after 8 iterations on every lane, the rest on a sub-batch
+    # of 1/lk_tail_share of the lanes (a lane left without a seat raises frame.overflow; 1: every
+    # lane, every iteration; lk.LKOptions.tail_share)
+    lk_tail_share: int = 8
     # default path only: the LK's per-iteration kernel through torch.compile (False; True or the
     # torch.compile keywords, normalised to sorted pairs: lk.LKOptions.compile_step), this
     # tracker's setting (FeatureTracker.compile on a non-capturable tracker)
@@ -160,9 +164,9 @@ class TrackerParams:
         try:
             if self.lk_compile_step is not False:  # hashable: the normalised torch.compile keywords
                 object.__setattr__(self, "lk_compile_step", LKOptions(compile_step=self.lk_compile_step).compile_step)
-            self.lk_options, self.lk_short_options  # noqa: B018
+            self.lk_options, self.lk_short_options, self.lk_stereo_options  # noqa: B018
         except ConfigError as exc:  # name the tracker's field, not LKOptions'
-            raise ConfigError(f"lk_iter_budget / lk_grad_mode / lk_compile_step / lk_*: {exc}") from None
+            raise ConfigError(f"lk_iter_budget / lk_tail_share / lk_grad_mode / lk_compile_step / lk_*: {exc}") from None
 
     def check_image_size(self, height: int, width: int) -> None:
         """The kernels' size checks for ``height x width`` images (the step calls the kernels
@@ -212,6 +216,7 @@ class TrackerParams:
         return LKOptions(win_size=(self.lk_win_size, self.lk_win_size), max_level=self.lk_max_level,
                          max_iters=self.lk_max_iters, eps=self.lk_eps, min_eig_threshold=self.lk_min_eig_threshold,
                          fixed_point=True, capturable=self.capturable, iter_budget=self.lk_iter_budget,
+                         tail_share=self.lk_tail_share,
                          grad_mode=self.lk_grad_mode if self.differentiable else "unrolled",
                          compile_step=self.lk_compile_step)
 
@@ -219,6 +224,13 @@ class TrackerParams:
     def lk_short_options(self) -> LKOptions:
         """VINS-Fusion's one-level LK (from a prediction; the temporal backward check)."""
         return dataclasses.replace(self.lk_options, max_level=self.fusion_short_max_level)
+
+    @functools.cached_property
+    def lk_stereo_options(self) -> LKOptions:
+        """VINS-Fusion's left -> right LK (no guess): every lane every iteration (``tail_share`` 1).
+        The disparities are tens of pixels, so many lanes iterate long (the golden stereo run
+        overflows the default tail's seats); the tail split pays for temporal tracking only."""
+        return dataclasses.replace(self.lk_options, tail_share=1)
 
     @property
     def uses_clahe(self) -> bool:

@@ -412,10 +412,10 @@ def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tenso
     with stage("pyramid"):
         rpyr = image_pyramid(right, params)
     with stage("lk"):
-        ruv, rst, of = _track_lk_impl(pyr, rpyr, table.pts, valid, None, params.lk_options,
+        ruv, rst, of = _track_lk_impl(pyr, rpyr, table.pts, valid, None, params.lk_stereo_options,
                                       capturable=params.capturable)
         if params.flow_back:  # the backward check from the right result, no guess (spec §6.3)
-            rst, of_b = _forward_backward_impl(pyr, rpyr, table.pts, ruv, rst, params.lk_options,
+            rst, of_b = _forward_backward_impl(pyr, rpyr, table.pts, ruv, rst, params.lk_stereo_options,
                                                params.lk_max_level, params.flow_back_threshold, False,
                                                capturable=params.capturable)
             of = merge_overflow(of, of_b)
