@@ -10,6 +10,11 @@
   (``nonzero``, ``masked_select``, ``unique``, ``bincount``, ``equal``, boolean-mask indexing,
   ``repeat_interleave`` without ``output_size``, linalg ops that check errors on the host), and
   ``Tensor.tolist()`` / ``Tensor.numpy()`` (watched while the counter is active);
+* ``c.bytes_written``: bytes of the tensors the kernels write (outputs, ``out=`` and in-place
+  targets), and ``c.largest``: the largest of them: the memory-traffic floor of the block (every
+  written byte is read at least once more, or it was not needed) and a bound on its peak tensor.
+  Bytes read are not counted (a gather's source is a view of the whole tensor; see
+  ``../shared/tools/cuda_sim/roofline.py`` for the read side);
 * ``c.uploads``: tensors made from host data inside the block (``torch.tensor(...)``,
   ``lift_fresh``): on CUDA each is a blocking host-to-device copy, i.e. a sync as well (counted
   in ``c.syncs`` too).
@@ -87,6 +92,8 @@ class OpCounter(TorchDispatchMode):
         self.allocs = 0
         self.syncs = 0
         self.uploads = 0
+        self.bytes_written = 0
+        self.largest = 0
         self.sites: Dict[Tuple[str, str], int] = collections.Counter()
         self.names: Dict[str, int] = collections.Counter()
         self._saved = None
@@ -136,6 +143,13 @@ class OpCounter(TorchDispatchMode):
                 self._sync(f"{name} (boolean mask)")
             elif name == "repeat_interleave" and len(args) == 1 and kwargs.get("output_size") is None:
                 self._sync("repeat_interleave (no output_size)")
+            out = func(*args, **kwargs)
+            for t in (out if isinstance(out, (tuple, list)) else (out,)):
+                if isinstance(t, torch.Tensor):
+                    nb = t.numel() * t.element_size()
+                    self.bytes_written += nb
+                    self.largest = max(self.largest, nb)
+            return out
         return func(*args, **kwargs)
 
     def summary(self) -> str:
