@@ -57,9 +57,9 @@ class LKOptions:
             smaller budget bounds the work of the capturable path (on both paths the same
             results); a lane still iterating when it ends may differ from OpenCV, which the
             ``overflow`` field of ``_track_lk_impl``'s :class:`LKResult` reports per stream.
-        grad_mode: ``"unrolled"`` (default: autograd through every iteration) or ``"implicit"``
-            (implicit-function gradient of the level-0 solution; the forward values are the same
-            bit for bit).
+        grad_mode: ``"implicit"`` (default: implicit-function gradient of the level-0 solution)
+            or ``"unrolled"`` (autograd through every iteration); the forward values are the same
+            bit for bit.
         compile_step: the eager path's per-iteration kernel through ``torch.compile`` (True, or a
             mapping of ``torch.compile`` keywords with hashable values; ``dynamic=True`` unless
             given); normalised to False or the sorted keyword pairs. The same values; no effect on
@@ -78,7 +78,7 @@ class LKOptions:
     fixed_point: bool = True
     capturable: bool = False
     iter_budget: int | Tuple[int, ...] | None = None
-    grad_mode: str = "unrolled"
+    grad_mode: str = "implicit"
     compile_step: Any = False
 
     def __post_init__(self):
