@@ -107,3 +107,18 @@ def test_unavailable_devices_are_named_with_what_is_available():
     with pytest.raises(ValueError, match="'gpu' is not a device.*available here: cpu"):
         FeatureTracker(cfg, device="gpu")
     assert FeatureTracker(cfg, device=torch.device("cpu")).device == torch.device("cpu")
+
+
+def test_the_cli_names_an_unusable_device_in_one_line(capsys, tmp_path):
+    """``--device mps`` (a device torch names but this machine lacks): one line, exit 2 (before: a
+    traceback from the first allocation)."""
+    from tests._helpers import CONFIG, assert_one_error_line
+    from tests.conftest import SAMPLE
+    from torch_frontend.cli import main
+
+    mps = getattr(torch.backends, "mps", None)
+    dev = "cuda:99" if mps is not None and mps.is_available() else "mps"
+    rc = main(["track", CONFIG, "--euroc", str(SAMPLE), "--out", str(tmp_path / "o"), "--device", dev,
+               "--no-progress", "--max-frames", "2"])
+    assert rc == 2
+    assert_one_error_line(capsys.readouterr().err, f"--device '{dev}'", "available here: cpu")

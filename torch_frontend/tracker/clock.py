@@ -101,7 +101,7 @@ def _host_values(x, batch: int, dtype) -> Optional[List]:
     if isinstance(x, torch.Tensor):
         if x.device.type != "cpu":
             return None
-        try:  # a CPU tensor: no copy, and no aten op for a dispatch mode to see
+        try:  # a CPU tensor: no copy, no kernel, no sync (one alias op, detach, under a dispatch mode)
             x = (x.detach() if x.requires_grad else x).numpy()
         except (RuntimeError, TypeError):  # a fake or wrapped tensor: no values to read
             return None
