@@ -122,3 +122,26 @@ def test_the_cli_names_an_unusable_device_in_one_line(capsys, tmp_path):
                "--no-progress", "--max-frames", "2"])
     assert rc == 2
     assert_one_error_line(capsys.readouterr().err, f"--device '{dev}'", "available here: cpu")
+
+
+def test_the_restart_watch_reads_no_device_tensor():
+    """Timestamps (or ``active``) on a device are not read: no op, no sync (a ``meta`` tensor stands
+    for a CUDA one), and the watch starts afresh instead of counting."""
+    from torch_frontend.testing.dispatch_count import OpCounter
+    from torch_frontend.tracker.clock import RestartWatch
+
+    class State:  # any weak-referenceable object stands for a TrackerState
+        pass
+
+    watch, state = RestartWatch(2, 1.0, steps=2), State()
+    for k in range(2):
+        watch.observe(state, [10.0 * k, 0.0], None)
+        watch.follow(state)
+    assert watch.run[0] == [10.0]
+    dev_t = torch.zeros(2, dtype=torch.float64, device="meta")
+    dev_a = torch.ones(2, dtype=torch.bool, device="meta")
+    with OpCounter() as c:
+        watch.observe(state, dev_t, None)
+        watch.observe(state, [1.0, 1.0], dev_a)
+    assert c.kernels == 0 and c.syncs == 0, c.summary()
+    assert watch.run == [[], []] and watch.last == [None, None]
