@@ -379,7 +379,8 @@ def test_gradcheck(max_level, win):
     pts = torch.tensor([[[10.3, 11.6], [13.2, 9.1]]], dtype=torch.float64, requires_grad=True)
 
     def f(I, J, pts):
-        out, st = track_lk(I, J, pts, win_size=win, max_level=max_level, eps=1e-3)
+        # the unrolled gradient is the derivative of this (unconverged) forward: gradcheck's target
+        out, st = track_lk(I, J, pts, win_size=win, max_level=max_level, eps=1e-3, grad_mode="unrolled")
         assert st.all()
         return out
 
@@ -395,7 +396,7 @@ def test_finite_difference_real_crop(cam0):
     # derivative, central differences average both sides), so move them off the pixel grid
     p = torch.from_numpy(gftt(cam0[0][180:244, 330:394], 4, 8) + np.float32([0.37, 0.21])).double()[None]
     c = torch.randn_like(p, generator=torch.Generator().manual_seed(0))
-    kw = dict(max_level=1, eps=1e-4)
+    kw = dict(max_level=1, eps=1e-4, grad_mode="unrolled")  # what this test measures (the default is implicit)
 
     def loss(a, b, p):
         out, st = track_lk(a, b, p, **kw)

@@ -57,6 +57,50 @@ def check_shape(t: torch.Tensor, shape: Shape, name: str) -> None:
         raise ValueError(f"{name}: expected shape {want_s}, got {tuple(dims)}")
 
 
+def available_devices() -> list:
+    """The devices this process can use: ``cpu``, every ``cuda:i``, ``mps`` where present."""
+    out = ["cpu"]
+    if torch.cuda.is_available():
+        out += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        out.append("mps")
+    return out
+
+
+def check_device(device, name: str = "device") -> torch.device:
+    """``torch.device(device)``, refused with a ``ValueError`` naming it and the available devices
+    when this process cannot allocate on it (a torch built without CUDA, no GPU, ``cuda:3`` on a
+    one-GPU machine, ``mps`` off a Mac) instead of torch's raw ``AssertionError`` /
+    ``RuntimeError`` from deep inside the first allocation.
+
+    The probe is a 0-element allocation (no host sync, no data), so a device torch cannot name
+    (``cuda`` on a CPU build) but a dispatch mode provides (a simulated or fake CUDA) passes."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"{name}: {device!r} is not a device ({str(exc).splitlines()[0][:200]}); available here: "
+                         f"{', '.join(available_devices())}") from None
+    if dev.type in ("cpu", "meta"):
+        return dev
+    try:
+        torch.empty(0, device=dev)
+    except (AssertionError, RuntimeError, NotImplementedError) as exc:
+        if dev.type == "cuda" and not torch.version.cuda and not getattr(torch.version, "hip", None):
+            why = f"this torch {torch.__version__} is built without CUDA"
+        elif dev.type == "cuda" and not torch.cuda.is_available():
+            why = "no CUDA device is visible"
+        elif dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+            why = f"this machine has {torch.cuda.device_count()} CUDA device(s)"
+        elif dev.type == "mps":
+            why = "MPS needs Apple silicon and a torch built with it"
+        else:
+            why = f"this torch cannot allocate on {dev.type}: {type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
+        raise ValueError(f"{name} {str(dev)!r} is not available on this machine ({why}); available here: "
+                         f"{', '.join(available_devices())}") from None
+    return dev
+
+
 def check_int(value, name: str, minimum: int = 0) -> int:
     """Check that ``value`` is an integer (an int, or a number equal to one) ``>= minimum``;
     returns it as an ``int``.

@@ -23,6 +23,10 @@ Under ``torchrun`` (``torchrun --nproc-per-node N -m torch_frontend track|loop|v
 summary; ``--timeout`` bounds how long a rank may go without progress. ``--workers N`` decodes the
 frames in DataLoader workers (``pipelines.prefetch``).
 
+``track``, ``demo`` and ``loop`` run torch and OpenCV on one thread unless ``--threads N`` is given
+or the user set ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` (:func:`_thread_policy`; the library
+itself never changes the process's threads), and restore the previous counts afterwards.
+
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
 wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
 stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
@@ -41,6 +45,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import signal
 import sys
 from pathlib import Path
@@ -85,6 +90,44 @@ def default_config_path() -> Path:
 
 class _UsageError(Exception):
     """Bad command-line combination (printed as one line, exit 2)."""
+
+
+#: environment variables that set torch's intra-op threads: when the user sets one, the CLI leaves
+#: the threads to it (torch reads them at start-up)
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _thread_policy(threads: int | None):
+    """torch's intra-op threads and OpenCV's for one command (``--threads``), restored after it.
+
+    Default (``threads`` None): 1, unless the user set ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS``
+    (then nothing is changed). One thread because the tracker's tensors are small (752x480
+    images, ~150 points): extra threads only add synchronisation, and on a busy machine each of
+    the tracker's many small ops then waits for a descheduled thread. Measured on this project's
+    shared 2-core machine (``docs/cli.md#threads``): ``track`` on the sample frames, in the worst
+    sitting, 0.3-1.6 frames/s with torch's default 2 threads and 8.5-14.3 with 1 (loaded by one
+    busy core or not)."""
+    import torch
+
+    if threads is None and any(os.environ.get(v) for v in THREAD_ENV):
+        yield
+        return
+    n = 1 if threads is None else int(threads)
+    try:
+        import cv2
+    except ImportError:  # pragma: no cover - cv2 is a dependency
+        cv2 = None
+    saved = torch.get_num_threads(), (cv2.getNumThreads() if cv2 is not None else None)
+    torch.set_num_threads(n)
+    if cv2 is not None:
+        cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(saved[0])
+        if cv2 is not None:
+            cv2.setNumThreads(saved[1])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -237,15 +280,10 @@ def _cmd_loop(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo_loop(args: argparse.Namespace) -> int:
-    import torch
-
     from .pipelines.loop import DEMO_RENDER, demo_loop, demo_options
 
-    # One intra-op thread: the demo's tensors are small (320x240 images, ~100 points), so extra
-    # threads only add synchronisation, and on a busy machine each of the tracker's many small ops
-    # then waits for a descheduled thread (measured: > 10 min instead of ~40 s with 2 threads
-    # while another process kept one of 2 cores busy).
-    torch.set_num_threads(1)
+    # one intra-op thread by default, as every command (_thread_policy; measured here: > 10 min
+    # instead of ~40 s with 2 threads while another process kept one of 2 cores busy)
     out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
     print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
           f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
@@ -362,6 +400,13 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str | None) -> Non
                    help="stop after N frames per stream")
     p.add_argument("--no-tracks", action="store_true", help="do not draw track images (tracks/)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_threads(p)
+
+
+def _add_threads(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=_positive_int, default=None, metavar="N",
+                   help="torch and OpenCV threads (default: 1, or as OMP_NUM_THREADS says when it is set; "
+                        "see docs/cli.md)")
 
 
 def _add_input_options(p: argparse.ArgumentParser, title: str):
@@ -488,6 +533,7 @@ def _add_loop(sub) -> None:
     loop.add_argument("--device", default=None,
                       help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
     loop.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_threads(loop)
     loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
 
@@ -629,7 +675,8 @@ def main(argv: List[str] | None = None) -> int:
             _error(msg if rank == 0 or msg.startswith("rank ") else f"rank {rank}: {msg}")
 
     try:
-        with _interrupt_signals():
+        threads = _thread_policy(args.threads) if hasattr(args, "threads") else contextlib.nullcontext()
+        with _interrupt_signals(), threads:
             return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
         error(exc, str(exc))

@@ -81,7 +81,7 @@ def track_lk(
     fb_use_initial_flow: bool = True,
     fixed_point: Optional[bool] = None,
     capturable: bool = False,
-    grad_mode: str = "unrolled",
+    grad_mode: str = "implicit",
     compile_step=False,
     early_exit: Optional[bool] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -115,11 +115,15 @@ def track_lk(
             when none is left (one host sync per iteration). True runs exactly ``max_iters`` masked
             iterations per level with no host sync (CUDA graphs / ``torch.compile`` friendly); the
             same results.
-        grad_mode: ``"unrolled"`` (default) differentiates every iteration of every level;
-            ``"implicit"`` runs the forward without a graph and attaches the implicit-function
-            gradient of the level-0 solution (memory independent of the iteration count; no
-            gradient to ``init_pts``; zero gradient for lanes with status False, lanes that hit
-            ``max_iters`` at level 0, and ill-posed lanes). Same values either way.
+        grad_mode: ``"implicit"`` (default) runs the forward without a graph and attaches the
+            implicit-function gradient of the level-0 solution (bounded on real images; memory
+            independent of the iteration count; no gradient to ``init_pts`` or the coarse levels;
+            zero gradient for lanes with status False, lanes that hit ``max_iters`` at level 0,
+            and ill-posed lanes). ``"unrolled"`` (opt in) differentiates every iteration of every
+            level: the exact derivative of the unconverged forward, with a gradient to
+            ``init_pts``, but on real images a coarse level can blow it up (Middlebury
+            RubberWhale: 40 of 1,049 points above 10, worst 1.3e8; ``docs/differentiability.md``).
+            Same values either way.
         compile_step: the default path's per-iteration kernel through ``torch.compile`` for this
             call (True, or a mapping of ``torch.compile`` keywords; see :class:`LKOptions`).
         early_exit: deprecated (``DeprecationWarning``): ``capturable = not early_exit``.
@@ -133,8 +137,9 @@ def track_lk(
         threshold, (with ``forward_backward``) that fail the check. Lanes with status False hold
         whatever OpenCV would leave there (finite); a lane whose ``init_pts`` is not finite gets
         status False (OpenCV: 0) and holds its ``pts`` (OpenCV: the NaN guess). Gradients flow to
-        ``pts``, ``init_pts`` and float images (through the pyramid) via unrolled iterations; the
-        backward check is discrete (no gradient). The values do not depend on whether gradients are recorded.
+        ``pts`` and float images (level 0) by the implicit-function theorem, or with
+        ``grad_mode="unrolled"`` to ``pts``, ``init_pts`` and float images (through the pyramid)
+        via the iterations; the backward check is discrete (no gradient). The values do not depend on whether gradients are recorded.
 
     ``torch.func``: ``vmap`` over an outer batch (``(V, B, ...)`` inputs, any of them shared with
     ``in_dims=None``) gives the per-``v`` calls' results bit for bit; ``grad``, ``vjp``, ``jacrev``,

@@ -63,9 +63,9 @@ class LKOptions:
             masked no-ops of lanes that have stopped (on real frames all but a few) is not done. A
             lane still running without a seat stops there and raises ``overflow`` (results differ
             from OpenCV's only there). Default 8; 1: every lane runs every iteration.
-        grad_mode: ``"unrolled"`` (default: autograd through every iteration) or ``"implicit"``
-            (implicit-function gradient of the level-0 solution; the forward values are the same
-            bit for bit).
+        grad_mode: ``"implicit"`` (default: implicit-function gradient of the level-0 solution)
+            or ``"unrolled"`` (autograd through every iteration); the forward values are the same
+            bit for bit.
         compile_step: the eager path's per-iteration kernel through ``torch.compile`` (True, or a
             mapping of ``torch.compile`` keywords with hashable values; ``dynamic=True`` unless
             given); normalised to False or the sorted keyword pairs. The same values; no effect on
@@ -85,7 +85,7 @@ class LKOptions:
     capturable: bool = False
     iter_budget: int | Tuple[int, ...] | None = None
     tail_share: int = 8
-    grad_mode: str = "unrolled"
+    grad_mode: str = "implicit"
     compile_step: Any = False
 
     def __post_init__(self):

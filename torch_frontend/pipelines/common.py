@@ -75,17 +75,24 @@ class InputOptions:
 
 
 def resolve_device(device: Any, option: str = "device") -> torch.device:
-    """``torch.device`` of ``device``; ``OptionError`` (named ``option``) when it is not a device
-    or names CUDA on a machine without it."""
+    """``torch.device`` of ``device``; ``OptionError`` (named ``option``) when it is not a device,
+    names CUDA on a machine without it, or is one this process cannot allocate on
+    (``_checks.check_device``)."""
     import torch
 
     name = str(device)
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise OptionError(option, f"{option} {name}: CUDA is not available on this machine (use cpu)")
     try:
-        return torch.device(name)
+        dev = torch.device(name)
     except RuntimeError:
         raise OptionError(option, f"{option}: expected cpu or cuda, got {name!r}") from None
+    from .._checks import check_device
+
+    try:  # a device torch names but cannot use here (mps off a Mac, cuda:3 on a one-GPU machine)
+        return check_device(dev, option)
+    except ValueError as exc:
+        raise OptionError(option, str(exc)) from None
 
 
 @contextlib.contextmanager

@@ -26,7 +26,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple, Tuple
+import sys
+import warnings
+import weakref
+from typing import List, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch
@@ -180,5 +183,115 @@ def publish_plan(n_publish: int, batch: int) -> PublishPlan:
     return PublishPlan(next(n for n in lane_sizes(batch) if n >= n_publish), batch)
 
 
+#: consecutive restarting steps of one stream after which :class:`RestartWatch` warns (once per
+#: stream): one gap is a pause in a recording; three in a row mean nothing will ever be published
+RESTART_WARN_STEPS = 3
+
+
+def _host_values(x, batch: int, dtype) -> Optional[List]:
+    """``x`` as a list of ``batch`` Python values when it is on the host (a number, a sequence, a
+    numpy array or a CPU tensor), else None (a device tensor: reading it would be a host sync)."""
+    if isinstance(x, torch.Tensor):
+        if x.device.type != "cpu":
+            return None
+        try:  # a CPU tensor: no copy, no kernel, no sync (one alias op, detach, under a dispatch mode)
+            x = (x.detach() if x.requires_grad else x).numpy()
+        except (RuntimeError, TypeError):  # a fake or wrapped tensor: no values to read
+            return None
+    try:
+        import numpy as np
+
+        v = np.asarray(x, dtype=dtype).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    if v.size == 1:
+        v = np.repeat(v, batch)
+    return v.tolist() if v.size == batch else None
+
+
+def _outside_package() -> int:
+    """The ``stacklevel`` of the first frame outside ``torch_frontend``, for a warning issued here."""
+    pkg = __file__.rsplit("tracker", 1)[0]
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(pkg):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _gap_hint(gaps: List[float]) -> str:
+    """What a run of restarting steps most likely means, from the sizes of its steps (seconds)."""
+    if all(g < 0 for g in gaps):
+        return "time goes backwards at every step: are the frames in order?"
+    g = sorted(abs(x) for x in gaps)[len(gaps) // 2]
+    if g >= 1e6:
+        return f"steps of ~{g:.2g} look like nanoseconds (EuRoC, ROS stamps): divide the timestamps by 1e9"
+    if g >= 5e3:
+        return f"steps of ~{g:.2g} look like microseconds: divide the timestamps by 1e6"
+    if g >= 5:
+        return f"steps of ~{g:.2g} look like milliseconds: divide the timestamps by 1e3"
+    return "are the frames really more than 1 s apart? VINS restarts a stream on every such step"
+
+
+class RestartWatch:
+    """Host-side watch over the timestamps a ``FeatureTracker`` is given: a stream whose last
+    ``RESTART_WARN_STEPS`` steps were each a restart by the clock's rule (a step of more than
+    ``restart_gap`` s, or backwards) gets one ``UserWarning`` naming the steps it saw and their
+    likely unit (nanoseconds or milliseconds passed as seconds make every frame a restart: ``valid``
+    all False, nothing published). Once per stream per watch.
+
+    It reads only values that are on the host already (Python numbers, sequences, numpy arrays,
+    CPU tensors): timestamps or ``active`` given as device tensors are not watched (reading them
+    would be a host sync on the capturable path). It follows one chain of states: a step from a
+    state other than the one the previous watched step returned (``reset()``, ``initial_state()``,
+    an older state) starts the watch afresh.
+    """
+
+    def __init__(self, batch: int, restart_gap: float, steps: int = RESTART_WARN_STEPS):
+        self.batch, self.restart_gap, self.steps = int(batch), float(restart_gap), int(steps)
+        self.warned: set = set()
+        self._forget()
+
+    def _forget(self) -> None:
+        self.last: List[Optional[float]] = [None] * self.batch
+        self.run: List[List[float]] = [[] for _ in range(self.batch)]
+        self._follows = None
+
+    def observe(self, state, timestamps, active) -> None:
+        """Look at one step's ``timestamps`` (and ``active``) from ``state``; warn where a stream's
+        run of restarting steps reaches ``steps`` (the warning points at the first caller outside
+        the package)."""
+        if self._follows is None or self._follows() is not state:
+            self._forget()
+        t = _host_values(timestamps, self.batch, "float64")
+        a = [True] * self.batch if active is None else _host_values(active, self.batch, "bool")
+        if t is None or a is None:
+            self._forget()
+            return
+        for b in range(self.batch):
+            if not a[b]:
+                continue
+            last, self.last[b] = self.last[b], t[b]
+            if last is None:
+                continue
+            gap = t[b] - last
+            if gap > self.restart_gap or gap < 0:
+                self.run[b] = (self.run[b] + [gap])[-self.steps:]
+            else:
+                self.run[b] = []
+            if len(self.run[b]) == self.steps and b not in self.warned:
+                self.warned.add(b)
+                seen = ", ".join(f"{g:.4g} s" for g in self.run[b])
+                warnings.warn(f"timestamps of stream {b}: {self.steps} steps in a row restarted it (steps {seen}: "
+                              f"each more than {self.restart_gap:g} s or backwards), so it publishes nothing; "
+                              f"{_gap_hint(self.run[b])}", UserWarning, stacklevel=_outside_package())
+
+    def follow(self, state) -> None:
+        """The state the watched step returned: the next :meth:`observe` continues from it."""
+        try:
+            self._follows = weakref.ref(state)
+        except TypeError:  # not weak-referenceable: watch every step as a continuation
+            self._follows = lambda: state
+
+
 __all__ = ["mono_clock", "count_published", "ClockDecision", "c_round", "HostClock", "lane_sizes",
-           "PublishPlan", "publish_plan"]
+           "PublishPlan", "publish_plan", "RestartWatch", "RESTART_WARN_STEPS"]

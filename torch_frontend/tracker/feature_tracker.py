@@ -23,10 +23,10 @@ import numpy as np
 import torch
 import torch.utils._pytree as pytree
 
-from .._checks import check_shape
+from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig, load_config
-from .clock import HostClock, PublishPlan, publish_plan
+from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
 from .params import TrackerParams
 from .stages import remove_features, set_prediction
@@ -131,7 +131,9 @@ class FeatureTracker:
     Args:
         config: a ``TrackerConfig`` or the path of a VINS config YAML.
         num_streams: B, the number of streams (cameras or sequences) tracked in each call.
-        device: where the state and the work live.
+        device: where the state and the work live; one this process cannot use (``"cuda"`` with a
+            CPU-only torch, ``"cuda:3"`` on a one-GPU machine, ``"mps"`` off a Mac) raises a
+            ``ValueError`` naming it and the available devices.
         mode: ``"mono"`` (VINS-Mono ``feature_tracker`` node) or ``"fusion"`` (VINS-Fusion tracker).
         dtype: float dtype of points inside the tracker (float32 default).
         fisheye_mask: optional ``(H, W)`` uint8 mask for ``fisheye: 1`` configs; default: the
@@ -166,7 +168,11 @@ class FeatureTracker:
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
-    :class:`FeatureFrame`. Image size: mono requires ``H, W`` = the config's ``image_height``,
+    :class:`FeatureFrame`. Integer tensors and arrays (EuRoC's int64 nanoseconds, milliseconds)
+    are refused with a ``ValueError`` naming the likely unit; a mono stream whose last 3 steps each
+    restarted its clock (more than 1 s, or backwards: seconds that are really ns or ms) warns once
+    (``UserWarning``) naming those steps; only timestamps on the host are watched (a CUDA tensor
+    is not read, so the step stays free of host syncs). Image size: mono requires ``H, W`` = the config's ``image_height``,
     ``image_width`` (``ValueError`` otherwise); fusion tracks each image at its real size, as
     VINS-Fusion does (spec §6.2: the config's size is the estimator's), so any size works as long
     as consecutive images keep one. ``step(state, ...)`` is the same without touching ``self.state``.
@@ -195,7 +201,7 @@ class FeatureTracker:
             raise ValueError(f"num_streams: expected >= 1, got {num_streams}")
         self.config = config
         self.B = int(num_streams)
-        self.device = torch.device(device)
+        self.device = check_device(device)  # a ValueError naming it and what is available
         self.dtype = dtype
         if capturable is None:
             capturable = self.device.type != "cpu"
@@ -211,6 +217,8 @@ class FeatureTracker:
         self.params = params.to(self.device)
         self._stage = _StageTimer()
         self._compiled: Optional[_CompiledStep] = None
+        # mono: warns once per stream when its timestamps restart the clock at every step (clock.RestartWatch)
+        self._restarts = RestartWatch(self.B, self.params.restart_gap) if self.params.mode == "mono" else None
         self.reset()
 
     # ------------------------------------------------------------------ read-only views
@@ -342,12 +350,16 @@ class FeatureTracker:
                                     check_active(active, self.B, "cpu"))
         img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
                                           config_name=f"the config {self.config.path}")
+        if self._restarts is not None:  # host values only: no sync (clock.RestartWatch)
+            self._restarts.observe(state, timestamps, active)
         if self._compiled is not None:
             new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
         else:
             new, frame = step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage, plan=plan)
         if host is not None:
             self._remember_clock(new, host)
+        if self._restarts is not None:
+            self._restarts.follow(new)
         return new, frame
 
     def track(self, images, timestamps, right=None, active=None) -> FeatureFrame:

@@ -4,7 +4,7 @@ Convention:
     ``images (B, 1, H, W)`` uint8 (``(B, H, W)``, any strides and float 0..255 accepted at the door:
     float is rounded and clamped as cv_bridge would; NaN pixels and float images in 0..1 are
     refused), ``timestamps (B,)`` float64 seconds (float32 only where it resolves a millisecond:
-    not epoch seconds), ``active (B,)`` bool (a stream with False is left exactly as it was, e.g.
+    not epoch seconds; integer tensors and arrays are refused, naming the likely unit), ``active (B,)`` bool (a stream with False is left exactly as it was, e.g.
     a sequence that has ended). The state is not modified: the step returns a new
     :class:`TrackerState` and a :class:`FeatureFrame`.
 
@@ -144,12 +144,55 @@ def _narrow_float(timestamps) -> Optional[torch.dtype]:
     return dt if dt.is_floating_point and torch.finfo(dt).bits < 64 else None
 
 
+def _integer_dtype(timestamps) -> Optional[torch.dtype]:
+    """The integer dtype of a tensor / numpy array (``bool`` included), else None (Python numbers
+    and sequences are seconds, converted to float64)."""
+    if isinstance(timestamps, torch.Tensor):
+        dt = timestamps.dtype
+    elif hasattr(timestamps, "dtype") and hasattr(timestamps, "shape"):  # numpy, without importing it
+        dt = torch.as_tensor(timestamps).dtype
+    else:
+        return None
+    return None if dt.is_floating_point or dt.is_complex else dt
+
+
+#: (smallest magnitude, unit, divisor to seconds) of integer epoch times, largest first: seconds are
+#: ~1.7e9, milliseconds ~1.7e12, microseconds ~1.7e15, nanoseconds (EuRoC, ROS stamps) ~1.7e18
+EPOCH_UNITS = ((1e17, "nanoseconds", "1e9"), (1e14, "microseconds", "1e6"), (1e11, "milliseconds", "1e3"))
+
+
+def unit_hint(magnitude: float) -> Optional[Tuple[str, str]]:
+    """``(unit, divisor)`` that epoch times of about ``magnitude`` most likely count (None: they
+    could be seconds)."""
+    for low, unit, div in EPOCH_UNITS:
+        if magnitude >= low:
+            return unit, div
+    return None
+
+
 def check_timestamps(timestamps, batch: int, device) -> Tensor:
     """``(B,)`` float64 finite seconds on ``device`` (a scalar is broadcast to every stream).
 
-    A float32 (or narrower) tensor or array is refused where it cannot resolve
-    ``TIMESTAMP_RESOLUTION`` at its times (epoch seconds): the precision is gone before the cast.
+    An integer tensor or array is refused (``ValueError``): integer times are nanoseconds or
+    milliseconds far more often than seconds (EuRoC's int64 ns would make every frame a restart, so
+    nothing would be published); the message names the likely unit from the values' size. Python
+    numbers and sequences are seconds. A float32 (or narrower) tensor or array is refused where it
+    cannot resolve ``TIMESTAMP_RESOLUTION`` at its times (epoch seconds): the precision is gone
+    before the cast.
     """
+    whole = _integer_dtype(timestamps)
+    if whole is not None:
+        vals = torch.as_tensor(timestamps)
+        tmax = float(vals.abs().max()) if vals.numel() and whole != torch.bool else 0.0  # an error: a sync is fine
+        dt = str(whole).replace("torch.", "")
+        unit = unit_hint(tmax)
+        if unit is not None:
+            hint = (f"values around {tmax:.2g} look like {unit[0]}{' (EuRoC, ROS stamps)' if unit[1] == '1e9' else ''}: "
+                    f"pass timestamps.double() / {unit[1]}")
+        else:
+            hint = ("if they count seconds pass timestamps.double(); nanoseconds or milliseconds since the start: "
+                    "timestamps.double() / 1e9 or / 1e3")
+        raise ValueError(f"timestamps are {dt} (integers, up to {tmax:.6g}): expected float64 seconds; {hint}")
     narrow = _narrow_float(timestamps)
     t = torch.as_tensor(timestamps, dtype=torch.float64)
     if t.dim() == 0:
@@ -362,4 +405,4 @@ def _fusion(state, img, t, right, params, arrived, stage):
                        merge_overflow(of_lk, of_det, of_right), **extra)
 
 
-__all__ = ["step", "step_impl", "check_inputs", "check_images", "check_timestamps", "check_active"]
+__all__ = ["step", "step_impl", "check_inputs", "check_images", "check_timestamps", "check_active", "unit_hint"]
