@@ -253,5 +253,29 @@ def test_out_is_a_file(tmp_path, capsys):
     seq = make_asl(tmp_path / "a", n=1, small=True)
     rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", seq, "--out", f, "--no-progress")
     assert rc == 1
-    assert_one_error_line(err, "cannot write", str(f))
+    assert_one_error_line(err, str(f), "is a file, not a folder")
+    assert "File exists" not in err
     assert f.read_text() == "x"
+
+
+def test_track_prints_its_settings_and_config_typos(tmp_path, capsys):
+    """``track`` prints one line of the settings it runs with; a config typo is one warning line
+    naming the key, the file and the key it is close to; a key given twice is an error naming both lines."""
+    cfg = small_config(tmp_path)
+    cfg.write_text(cfg.read_text() + "equalise: 0\n")
+    seq = make_asl(tmp_path / "a", n=2, small=True)
+    rc, stdout, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o", "--no-tracks",
+                              "--no-progress")
+    assert rc == 0, err
+    settings = [ln for ln in stdout.splitlines() if ln.startswith("config ")]
+    assert len(settings) == 1, stdout
+    for part in ("PINHOLE 256x192", "max_cnt 60", "min_dist 30", "freq 10 Hz", "equalize 1", "F_threshold 1",
+                 "fisheye 0"):
+        assert part in settings[0], settings[0]
+    warn = [ln for ln in err.splitlines() if ln.strip()]
+    assert warn == [f"torch-frontend: warning: unknown key `equalise` in {cfg}: did you mean `equalize`? "
+                    f"(the key is ignored)"], err
+    cfg.write_text(cfg.read_text() + "max_cnt: 19\n")
+    rc, _, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o2", "--no-progress")
+    assert rc == 2
+    assert_one_error_line(err, str(cfg), "max_cnt", "given twice, on line")

@@ -192,6 +192,8 @@ def test_loop_cli_image_folder(short_inputs, tmp_path, capsys):
                               "--keyframe-distance", 0.1, "--keyframe-angle", 5)
     assert rc == 0, err
     assert "keyframes" in stdout and "ATE" in stdout and "loops" in stdout
+    settings = [ln for ln in stdout.splitlines() if ln.startswith("config ")]  # the settings, one line
+    assert len(settings) == 1 and str(d["config"]) in settings[0] and "max_cnt" in settings[0], stdout
     s = json.loads((out / "summary.json").read_text())
     for name in (*STREAM_FILES, *OUTPUT_FILES):
         assert (out / name).is_file(), name

@@ -191,20 +191,33 @@ def _input_options(args: argparse.Namespace) -> Dict[str, Any]:
                 workers=args.workers)
 
 
+def _resolved_config(config, sources, opt):
+    """The run's ``TrackerConfig`` (after the options are checked, so that a bad option is still
+    the first error), its settings printed on one line (rank 0 under ``torchrun``)."""
+    from .pipelines.inputs import resolve_config
+
+    opt.check()
+    cfg = resolve_config(config, sources, opt.camera)
+    if _rank() == 0:
+        print(cfg.settings_line(), flush=True)
+    return cfg
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
     from .pipelines.track import TrackOptions, run_track
 
     sources = args.sources or []
     _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks)
+    config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
 
-        summary = run_track_sharded(args.config, sources, args.out, opt, timeout=args.timeout)
+        summary = run_track_sharded(config, sources, args.out, opt, timeout=args.timeout)
         if summary is not None:  # rank 0
             print(format_summary(summary))
         return 0
-    print(format_summary(run_track(args.config, sources, args.out, opt)))
+    print(format_summary(run_track(config, sources, args.out, opt)))
     return 0
 
 
@@ -223,15 +236,16 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
     )
+    config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_loop_sharded
 
-        summary = run_loop_sharded(args.config, sources, args.poses or [], args.out, opt,
+        summary = run_loop_sharded(config, sources, args.poses or [], args.out, opt,
                                    ground_truth=args.ground_truth, timeout=args.timeout)
         if summary is not None:  # rank 0
             print(format_loop_summary(summary))
         return 0
-    run = run_loop(args.config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
+    run = run_loop(config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
     print(format_loop_summary(run.summary))
     return 0
 
@@ -601,6 +615,29 @@ def _interrupt_signals():
             signal.signal(sig, prev)
 
 
+@contextlib.contextmanager
+def _config_warnings():
+    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
+    ``torch-frontend: warning: ...`` inside the block; other warnings as Python prints them."""
+    import warnings
+
+    from .errors import ConfigWarning
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, ConfigWarning):
+            print(f"torch-frontend: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
 def _rank() -> int:
     """This process's rank under a launcher (0 without one)."""
     from .distributed.env import dist_env
@@ -629,7 +666,7 @@ def main(argv: List[str] | None = None) -> int:
             _error(msg if rank == 0 or msg.startswith("rank ") else f"rank {rank}: {msg}")
 
     try:
-        with _interrupt_signals():
+        with _interrupt_signals(), _config_warnings():
             return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
         error(exc, str(exc))

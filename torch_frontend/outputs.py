@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 from pathlib import Path
 from typing import Any, Dict, List, Sequence
@@ -123,8 +124,10 @@ class RunRecorder:
         self.per_frame: List[List[tuple]] = [[] for _ in range(self.B)]  # (step, t, present, published or -1)
         self.track_images = 0
         self._tmp_tracks: Path | None = None
-        # created first, so that a file at ``out`` or a read-only place fails before the run
-        self.out.mkdir(parents=True, exist_ok=True)
+        # created first, so that a file at ``out`` or a read-only place fails before the run; a
+        # file at ``out`` is StagedFolder's "is a file, not a folder" (mkdir's would be "File exists")
+        if not os.path.lexists(self.out):
+            self.out.mkdir(parents=True, exist_ok=True)
         self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS)
         if self.write_tracks:
             self._tmp_tracks = self._stage.path / "tracks"
