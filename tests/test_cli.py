@@ -279,3 +279,33 @@ def test_track_prints_its_settings_and_config_typos(tmp_path, capsys):
     rc, _, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o2", "--no-progress")
     assert rc == 2
     assert_one_error_line(err, str(cfg), "max_cnt", "given twice, on line")
+
+
+def test_fps_folder_colour_frames_and_published_tracks(tmp_path, capsys):
+    """An ``--fps`` folder of colour frames: one note that they are made grey, track images whose
+    names sort in time order (zero-padded nanoseconds), and track statistics of published
+    features only (the tracks of ``features.csv``)."""
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    for i, f in enumerate(sample_frames("cam0")):  # 24 frames at 20 Hz: every other one published (freq 10)
+        g = crop(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+        assert cv2.imwrite(str(imgs / f"frame_{chr(97 + i)}.png"), cv2.merge([g, g, g]))  # names: not times (a..x)
+    out = tmp_path / "o"
+    rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--images", imgs, "--fps", 20, "--out", out,
+                         "--no-progress")
+    assert rc == 0, err
+    notes = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(notes) == 1 and notes[0].startswith("torch-frontend: note: images imgs: colour frames"), err
+    assert "converted to grey" in notes[0]
+    names = sorted(p.name for p in (out / "tracks" / "stream0").glob("*.png"))
+    stamps = [int(n[:-4]) for n in names]
+    assert len(stamps) >= 4 and max(stamps) >= 1_000_000_000 and stamps == sorted(stamps), names  # 0.1 s apart
+    s = json.loads((out / "summary.json").read_text())
+    with open(out / "features.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    longest = {}
+    for r in rows:
+        longest[r["id"]] = max(longest.get(r["id"], 0), int(r["track_count"]))
+    assert s["tracks"] == len(longest) > 0
+    assert s["median_track_length"] == float(np.median(list(longest.values())))
+    assert s["mean_track_length"] == pytest.approx(float(np.mean(list(longest.values()))))

@@ -618,16 +618,19 @@ def _interrupt_signals():
 @contextlib.contextmanager
 def _config_warnings():
     """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
-    ``torch-frontend: warning: ...`` inside the block; other warnings as Python prints them."""
+    ``torch-frontend: warning: ...`` and an input's ``DataWarning`` (colour frames made grey) as
+    ``torch-frontend: note: ...`` inside the block; other warnings as Python prints them."""
     import warnings
 
-    from .errors import ConfigWarning
+    from .errors import ConfigWarning, DataWarning
 
     shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, ConfigWarning):
             print(f"torch-frontend: warning: {message}", file=sys.stderr)
+        elif issubclass(category, DataWarning):
+            print(f"torch-frontend: note: {message}", file=sys.stderr)
         else:
             shown(message, category, filename, lineno, file, line)
 

@@ -27,6 +27,11 @@ class ConfigWarning(UserWarning):
     ignored, as VINS would ignore it (``torch_frontend.config.KNOWN_KEYS``)."""
 
 
+class DataWarning(UserWarning):
+    """A note about input data that is used, but not as given: colour frames converted to grey
+    (once per sequence). The CLI prints it as one ``torch-frontend: note: ...`` line."""
+
+
 class DataError(ValueError):
     """Input data is missing, unreadable or inconsistent (a user error, not a bug).
 

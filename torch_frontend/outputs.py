@@ -4,8 +4,10 @@ Convention:
     ``RunRecorder.add(batch, frame)`` is called once per tracker step with the ``MultiStream``
     batch and the ``FeatureFrame``; only alive streams count. A *published feature* is a slot with
     ``frame.valid`` (what VINS would publish: mono ``track_cnt > 1`` on published frames).
-    A track's length is the largest ``track_count`` its id reached (frames it was tracked in,
-    published or not).
+    A *track* is an id that was published at least once; its length is the largest
+    ``track_count`` it was published with (VINS's ``track_cnt``: the frames it was tracked in,
+    published or not). Features detected and lost between two published frames never reached
+    VINS and are not tracks (the summary's ``tracks``, mean and median lengths, the histogram).
 
     The output set is written as a whole: a run fills a hidden temporary folder beside ``out``
     (``.<out>.tf<pid>-<random>.tmp``, created when the recorder is, ``tracks/`` growing in it during
@@ -35,7 +37,8 @@ Outputs in ``out``:
       ``skipped_bad_frames`` and ``skipped`` (stream, source, reason), ``per_stream``, and the run's
       ``config``, ``mode``, ``device``, ``inputs``.
     * ``features_per_frame.png``, ``track_length_hist.png``: matplotlib (Agg) plots.
-    * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream.
+    * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream
+      (``stamp_ns`` zero-padded to 19 digits, so the names sort in time order).
     * ``written-by-torch-frontend.json``: the marker (``_atomic.MARKER``).
 """
 
@@ -164,11 +167,11 @@ class RunRecorder:
         for b in np.flatnonzero(alive):
             n_pub = int(valid[b].sum()) if published[b] else -1
             self.per_frame[b].append((batch.step, int(stamps[b]), int(present[b].sum()), n_pub))
-        # track lengths: every feature in the table, its current count (max taken at the end)
-        sb, sk = np.nonzero(present & (ids >= 0))
-        if sb.size:
-            self._lengths.append(np.stack([sb, ids[sb, sk], cnt[sb, sk]], axis=1).astype(np.int64))
         vb, vk = np.nonzero(valid)
+        # track lengths: every published feature, its count then (max taken at the end); a feature
+        # that was detected and lost between two published frames never reached VINS: not a track
+        if vb.size:
+            self._lengths.append(np.stack([vb, ids[vb, vk], cnt[vb, vk]], axis=1).astype(np.int64))
         if vb.size:
             xy = frame.xy.detach().cpu().double().numpy()
             uv = frame.uv.detach().cpu().double().numpy()
@@ -191,7 +194,8 @@ class RunRecorder:
                 img = draw_tracks(batch.raw[b], frame, int(b))
                 d = self._tmp_tracks / f"stream{b}"
                 d.mkdir(exist_ok=True)
-                if not cv2.imwrite(str(d / f"{int(stamps[b])}.png"), img):
+                # zero-padded nanoseconds (19 digits, as EuRoC names them): names sort in time order
+                if not cv2.imwrite(str(d / f"{int(stamps[b]):019d}.png"), img):
                     raise OSError(f"cannot write track image into {d}")
                 self.track_images += 1
 
@@ -210,7 +214,8 @@ class RunRecorder:
         return cols
 
     def track_lengths(self) -> np.ndarray:
-        """Length (largest ``track_count``) of every track (stream, id), as an int64 array."""
+        """Length (largest published ``track_count``) of every published track (stream, id), as an
+        int64 array (features that were never published are not counted)."""
         if not self._lengths:
             return np.zeros(0, dtype=np.int64)
         a = np.concatenate(self._lengths)
