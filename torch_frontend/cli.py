@@ -253,7 +253,7 @@ def _cmd_loop(args: argparse.Namespace) -> int:
 def _cmd_demo_loop(args: argparse.Namespace) -> int:
     import torch
 
-    from .pipelines.loop import DEMO_RENDER, demo_loop, demo_options
+    from .pipelines.loop import demo_announcement, demo_loop, demo_options
 
     # One intra-op thread: the demo's tensors are small (320x240 images, ~100 points), so extra
     # threads only add synchronisation, and on a busy machine each of the tracker's many small ops
@@ -261,10 +261,9 @@ def _cmd_demo_loop(args: argparse.Namespace) -> int:
     # while another process kept one of 2 cores busy).
     torch.set_num_threads(1)
     out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
-    print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
-          f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
     opt = demo_options(separate_graphs=args.separate_graphs, device=args.device or "cpu", progress=_progress(args),
                        tracker_mode=args.mode, max_frames=args.max_frames)
+    print(f"demo          {demo_announcement(opt)}")
     run = demo_loop(out, opt, two_sequences=args.two_sequences)
     print(format_loop_summary(run.summary))
     return 0
