@@ -10,9 +10,13 @@ $(VPY):
 	$(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 
-# torch first, pinned to the local CPU build, so that nothing later resolves a CUDA torch.
+# torch first, pinned, so that nothing later resolves another torch. Which build pip takes is the
+# index's choice: the CPU wheel where the machine provides one locally (pip's find-links, as on this
+# project's CI), the CUDA build from PyPI on an ordinary Linux machine; for the CPU build there:
+# make TORCH_INDEX=https://download.pytorch.org/whl/cpu demo
+TORCH_INDEX ?=
 $(STAMP): $(VPY) pyproject.toml
-	$(VPY) -m pip install -q torch==2.13.0
+	$(VPY) -m pip install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(VPY) -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
