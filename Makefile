@@ -22,6 +22,7 @@ $(STAMP): $(VPY) pyproject.toml
 
 demo: $(STAMP)
 	$(VENV)/bin/torch-frontend demo
+	$(VENV)/bin/torch-frontend demo --flight
 	$(VENV)/bin/torch-frontend demo --loop
 
 # the suite on every core (pytest-xdist; each worker runs torch on 1 thread, tests/conftest.py), without

@@ -309,3 +309,25 @@ def test_fps_folder_colour_frames_and_published_tracks(tmp_path, capsys):
     assert s["tracks"] == len(longest) > 0
     assert s["median_track_length"] == float(np.median(list(longest.values())))
     assert s["mean_track_length"] == pytest.approx(float(np.mean(list(longest.values()))))
+
+
+def test_demo_flight_tracks_move(tmp_path, capsys):
+    """``demo --flight``: the synthetic flight over the package photo; its published tracks move
+    across the image (the sample EuRoC demo's camera stands still), drawn in track_paths.png."""
+    out = tmp_path / "flight"
+    rc, stdout, err = run_cli(capsys, "demo", "--flight", "--out", out, "--max-frames", 12, "--no-tracks",
+                              "--no-progress")
+    assert rc == 0, err
+    assert "synthetic flight" in stdout and "published frames" in stdout
+    assert cv2.imread(str(out / "track_paths.png")) is not None
+    npz = np.load(out / "features.npz")
+    moved = []
+    for i in np.unique(npz["id"]):
+        m = npz["id"] == i
+        if m.sum() >= 3:
+            u, v = npz["u"][m][np.argsort(npz["stamp_ns"][m])], npz["v"][m][np.argsort(npz["stamp_ns"][m])]
+            moved.append(float(np.hypot(u[-1] - u[0], v[-1] - v[0])))
+    assert len(moved) >= 50 and np.median(moved) > 10.0, (len(moved), np.median(moved))  # ~2.5 px/frame
+    rc, _, err = run_cli(capsys, "demo", "--flight", "--loop", "--out", tmp_path / "x", "--no-progress")
+    assert rc == 2
+    assert_one_error_line(err, "--loop and --flight")

@@ -117,7 +117,7 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f"plots, tracks/; index.json, summary.json)")
     elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
-                     f"features_per_frame.png, track_length_hist.png, tracks/)")
+                     f"features_per_frame.png, track_length_hist.png, track_paths.png, tracks/)")
     return "\n".join(lines)
 
 
@@ -269,14 +269,35 @@ def _cmd_demo_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo_flight(args: argparse.Namespace) -> int:
+    from .pipelines.track import DEMO_FLIGHT, TrackOptions, demo_flight_inputs, run_track
+
+    if args.config is not None:
+        raise _UsageError("--config does not go with --flight (the flight has its own camera)")
+    out = Path("out/demo_flight") if args.out == Path("out/demo") else args.out
+    H, W = DEMO_FLIGHT["size"]
+    print(f"demo          synthetic flight over the package photo: {DEMO_FLIGHT['frames']} frames {W}x{H} at "
+          f"{DEMO_FLIGHT['rate']:g} Hz, ~2.5 px/frame across, turning and zooming slowly")
+    cfg, sources = demo_flight_inputs()
+    print(cfg.settings_line())
+    opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
+                       write_tracks=not args.no_tracks, progress=_progress(args))
+    print(format_summary(run_track(cfg, sources, out, opt)))
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .config import load_config
     from .pipelines.track import TrackOptions, run_track
 
+    if args.loop and args.flight:
+        raise _UsageError("--loop and --flight are two demos: give one")
     if args.loop:
         return _cmd_demo_loop(args)
     if args.two_sequences or args.separate_graphs:
         raise _UsageError("--two-sequences and --separate-graphs go with --loop")
+    if args.flight:
+        return _cmd_demo_flight(args)
     cfg = load_config(args.config or default_config_path())
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
@@ -408,7 +429,7 @@ def _add_track(sub) -> None:
         help="track one or more sequences (EuRoC/TUM-VI folders, ROS bags, image folders) and write results",
         description="Track one or more sequences as B streams of one batched tracker and write "
                     "features.csv, features.npz, summary.json, features_per_frame.png, "
-                    "track_length_hist.png and tracks/ into --out. Inputs may be repeated and mixed; "
+                    "track_length_hist.png, track_paths.png and tracks/ into --out. Inputs may be repeated and mixed; "
                     "each is one stream with its own timestamps.",
         epilog="example: torch-frontend track configs/euroc.yaml --euroc MH_01_easy --euroc MH_02_easy "
                "--out out/mh --max-frames 200",
@@ -431,6 +452,10 @@ def _add_demo(sub) -> None:
     )
     demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
     _add_run_options(demo, "out/demo")
+    demo.add_argument("--flight", action="store_true",
+                      help="instead: track a synthetic flight over the package photo (32 frames, the camera "
+                           "moving ~2.5 px/frame: tracks that move, see track_paths.png); writes into --out "
+                           "(default: out/demo_flight)")
     dloop = demo.add_argument_group("loop closure demo")
     dloop.add_argument("--loop", action="store_true",
                        help="instead: render a synthetic sequence that revisits places (two laps, drifted VIO "

@@ -36,7 +36,10 @@ Outputs in ``out``:
       (whole loop: reading, tracking, recording; ``tracker_seconds``: the tracker calls alone),
       ``skipped_bad_frames`` and ``skipped`` (stream, source, reason), ``per_stream``, and the run's
       ``config``, ``mode``, ``device``, ``inputs``.
-    * ``features_per_frame.png``, ``track_length_hist.png``: matplotlib (Agg) plots.
+    * ``features_per_frame.png``, ``track_length_hist.png``, ``track_paths.png``: matplotlib (Agg)
+      plots; ``track_paths.png`` draws each published track's path in the image (``u, v`` of its
+      published frames; the first 4 streams), coloured by length: dots for a still camera, lines
+      that follow the motion for a moving one.
     * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream
       (``stamp_ns`` zero-padded to 19 digits, so the names sort in time order).
     * ``written-by-torch-frontend.json``: the marker (``_atomic.MARKER``).
@@ -65,7 +68,8 @@ from ._atomic import (
 
 CSV_COLUMNS = ("stream", "timestamp", "id", "x", "y", "u", "v", "vx", "vy", "track_count")
 #: the files of a run (besides ``tracks/`` and the marker)
-OUTPUT_FILES = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png")
+OUTPUT_FILES = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png",
+                "track_paths.png")
 #: what an ``out`` folder written before the marker existed may hold to be replaced (``_atomic``)
 LEGACY_OUTPUTS = (
     "(" + "|".join(re.escape(n) for n in OUTPUT_FILES) + ")",
@@ -126,6 +130,7 @@ class RunRecorder:
         self.published = np.zeros(self.B, dtype=np.int64)
         self.per_frame: List[List[tuple]] = [[] for _ in range(self.B)]  # (step, t, present, published or -1)
         self.track_images = 0
+        self._size: tuple | None = None  # (H, W) of the frames, pixels (track_paths.png's axes)
         self._tmp_tracks: Path | None = None
         # created first, so that a file at ``out`` or a read-only place fails before the run; a
         # file at ``out`` is StagedFolder's "is a file, not a folder" (mkdir's would be "File exists")
@@ -156,6 +161,7 @@ class RunRecorder:
     def add(self, batch, frame) -> None:
         """Record one step: ``batch`` (``io.Batch``) and ``frame`` (``FeatureFrame``)."""
         alive = batch.alive.cpu().numpy().astype(bool)
+        self._size = tuple(int(x) for x in batch.images.shape[-2:])
         valid = frame.valid.cpu().numpy() & alive[:, None]
         present = frame.present.cpu().numpy() & alive[:, None]
         published = frame.published.cpu().numpy().astype(bool) & alive
@@ -338,7 +344,49 @@ class RunRecorder:
         ax.grid(True, alpha=0.3)
         fig.tight_layout()
         out.append(self._save_fig(fig, d, "track_length_hist.png"))
+        out.append(self._track_paths(d))
         return out
+
+    #: streams drawn in ``track_paths.png``
+    PATH_PANELS = 4
+
+    def _track_paths(self, d: Path) -> str:
+        """``track_paths.png``: the published tracks' paths in the image, per stream."""
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.collections import LineCollection
+        from matplotlib.figure import Figure
+
+        cmap = colormaps["coolwarm"]  # blue: short tracks, red: long ones (as the track images)
+        cols = self.columns()
+        n = max(1, min(self.B, self.PATH_PANELS))
+        fig = Figure(figsize=(5.5 * n, 4.2), dpi=100)
+        FigureCanvasAgg(fig)
+        for b in range(n):
+            ax = fig.add_subplot(1, n, b + 1)
+            m = cols["stream"] == b
+            ids, stamp = cols["id"][m], cols["stamp_ns"][m]
+            uv = np.stack([cols["u"][m], cols["v"][m]], axis=1)
+            order = np.lexsort((stamp, ids))  # per track, in time order
+            ids, uv = ids[order], uv[order]
+            cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
+            paths = np.split(uv, cuts) if ids.size else []
+            lengths = np.array([len(p) for p in paths], dtype=np.float64)
+            if paths:
+                hi = max(2.0, float(lengths.max()))
+                ax.add_collection(LineCollection(paths, colors=cmap(lengths / hi), linewidths=1.0))
+                ends = np.stack([p[-1] for p in paths])
+                ax.scatter(ends[:, 0], ends[:, 1], s=4, c=cmap(lengths / hi))
+            h, w = self._size if self._size is not None else (1, 1)
+            ax.set_xlim(0, w)
+            ax.set_ylim(h, 0)  # image rows down
+            ax.set_aspect("equal")
+            moved = float(np.median([np.linalg.norm(p[-1] - p[0]) for p in paths])) if paths else 0.0
+            ax.set_title(f"{self.names[b]}: {len(paths)} tracks, median path {moved:.1f} px", fontsize=9)
+            ax.set_xlabel("u (px)")
+            ax.set_ylabel("v (px)")
+        fig.tight_layout()
+        return self._save_fig(fig, d, "track_paths.png")
 
     def _save_fig(self, fig, d: Path, name: str) -> str:
         buf = io.BytesIO()
