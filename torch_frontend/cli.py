@@ -649,10 +649,12 @@ def _config_warnings():
     from .errors import ConfigWarning, DataWarning
 
     shown = warnings.showwarning
+    rank = _rank()
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, ConfigWarning):
-            print(f"torch-frontend: warning: {message}", file=sys.stderr)
+            if rank == 0:  # under torchrun every rank reads the config: rank 0 says it once
+                print(f"torch-frontend: warning: {message}", file=sys.stderr)
         elif issubclass(category, DataWarning):
             print(f"torch-frontend: note: {message}", file=sys.stderr)
         else:
