@@ -10,14 +10,19 @@ $(VPY):
 	$(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 
-# torch first, pinned to the local CPU build, so that nothing later resolves a CUDA torch.
+# torch first, pinned, so that nothing later resolves another torch. Which build pip takes is the
+# index's choice: the CPU wheel where the machine provides one locally (pip's find-links, as on this
+# project's CI), the CUDA build from PyPI on an ordinary Linux machine; for the CPU build there:
+# make TORCH_INDEX=https://download.pytorch.org/whl/cpu demo
+TORCH_INDEX ?=
 $(STAMP): $(VPY) pyproject.toml
-	$(VPY) -m pip install -q torch==2.13.0
+	$(VPY) -m pip install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(VPY) -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/torch-frontend demo
+	$(VENV)/bin/torch-frontend demo --flight
 	$(VENV)/bin/torch-frontend demo --loop
 
 # the suite on every core (pytest-xdist; each worker runs torch on 1 thread, tests/conftest.py), without

@@ -124,7 +124,8 @@ def truncate(path: Path, keep: float = 0.5) -> None:
 # the command line
 
 CONFIG = str(REPO / "configs" / "euroc.yaml")
-OUTPUTS = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png")
+OUTPUTS = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png",
+           "track_paths.png")
 
 
 def run_cli(capsys, *argv):

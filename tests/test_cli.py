@@ -253,5 +253,81 @@ def test_out_is_a_file(tmp_path, capsys):
     seq = make_asl(tmp_path / "a", n=1, small=True)
     rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", seq, "--out", f, "--no-progress")
     assert rc == 1
-    assert_one_error_line(err, "cannot write", str(f))
+    assert_one_error_line(err, str(f), "is a file, not a folder")
+    assert "File exists" not in err
     assert f.read_text() == "x"
+
+
+def test_track_prints_its_settings_and_config_typos(tmp_path, capsys):
+    """``track`` prints one line of the settings it runs with; a config typo is one warning line
+    naming the key, the file and the key it is close to; a key given twice is an error naming both lines."""
+    cfg = small_config(tmp_path)
+    cfg.write_text(cfg.read_text() + "equalise: 0\n")
+    seq = make_asl(tmp_path / "a", n=2, small=True)
+    rc, stdout, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o", "--no-tracks",
+                              "--no-progress")
+    assert rc == 0, err
+    settings = [ln for ln in stdout.splitlines() if ln.startswith("config ")]
+    assert len(settings) == 1, stdout
+    for part in ("PINHOLE 256x192", "max_cnt 60", "min_dist 30", "freq 10 Hz", "equalize 1", "F_threshold 1",
+                 "fisheye 0"):
+        assert part in settings[0], settings[0]
+    warn = [ln for ln in err.splitlines() if ln.strip()]
+    assert warn == [f"torch-frontend: warning: unknown key `equalise` in {cfg}: did you mean `equalize`? "
+                    f"(the key is ignored)"], err
+    cfg.write_text(cfg.read_text() + "max_cnt: 19\n")
+    rc, _, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o2", "--no-progress")
+    assert rc == 2
+    assert_one_error_line(err, str(cfg), "max_cnt", "given twice, on line")
+
+
+def test_fps_folder_colour_frames_and_published_tracks(tmp_path, capsys):
+    """An ``--fps`` folder of colour frames: one note that they are made grey, track images whose
+    names sort in time order (zero-padded nanoseconds), and track statistics of published
+    features only (the tracks of ``features.csv``)."""
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    for i, f in enumerate(sample_frames("cam0")):  # 24 frames at 20 Hz: every other one published (freq 10)
+        g = crop(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
+        assert cv2.imwrite(str(imgs / f"frame_{chr(97 + i)}.png"), cv2.merge([g, g, g]))  # names: not times (a..x)
+    out = tmp_path / "o"
+    rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--images", imgs, "--fps", 20, "--out", out,
+                         "--no-progress")
+    assert rc == 0, err
+    notes = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(notes) == 1 and notes[0].startswith("torch-frontend: note: images imgs: colour frames"), err
+    assert "converted to grey" in notes[0]
+    names = sorted(p.name for p in (out / "tracks" / "stream0").glob("*.png"))
+    stamps = [int(n[:-4]) for n in names]
+    assert len(stamps) >= 4 and max(stamps) >= 1_000_000_000 and stamps == sorted(stamps), names  # 0.1 s apart
+    s = json.loads((out / "summary.json").read_text())
+    with open(out / "features.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    longest = {}
+    for r in rows:
+        longest[r["id"]] = max(longest.get(r["id"], 0), int(r["track_count"]))
+    assert s["tracks"] == len(longest) > 0
+    assert s["median_track_length"] == float(np.median(list(longest.values())))
+    assert s["mean_track_length"] == pytest.approx(float(np.mean(list(longest.values()))))
+
+
+def test_demo_flight_tracks_move(tmp_path, capsys):
+    """``demo --flight``: the synthetic flight over the package photo; its published tracks move
+    across the image (the sample EuRoC demo's camera stands still), drawn in track_paths.png."""
+    out = tmp_path / "flight"
+    rc, stdout, err = run_cli(capsys, "demo", "--flight", "--out", out, "--max-frames", 12, "--no-tracks",
+                              "--no-progress")
+    assert rc == 0, err
+    assert "synthetic flight" in stdout and "published frames" in stdout
+    assert cv2.imread(str(out / "track_paths.png")) is not None
+    npz = np.load(out / "features.npz")
+    moved = []
+    for i in np.unique(npz["id"]):
+        m = npz["id"] == i
+        if m.sum() >= 3:
+            u, v = npz["u"][m][np.argsort(npz["stamp_ns"][m])], npz["v"][m][np.argsort(npz["stamp_ns"][m])]
+            moved.append(float(np.hypot(u[-1] - u[0], v[-1] - v[0])))
+    assert len(moved) >= 50 and np.median(moved) > 10.0, (len(moved), np.median(moved))  # ~2.5 px/frame
+    rc, _, err = run_cli(capsys, "demo", "--flight", "--loop", "--out", tmp_path / "x", "--no-progress")
+    assert rc == 2
+    assert_one_error_line(err, "--loop and --flight")

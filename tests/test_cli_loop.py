@@ -192,6 +192,8 @@ def test_loop_cli_image_folder(short_inputs, tmp_path, capsys):
                               "--keyframe-distance", 0.1, "--keyframe-angle", 5)
     assert rc == 0, err
     assert "keyframes" in stdout and "ATE" in stdout and "loops" in stdout
+    settings = [ln for ln in stdout.splitlines() if ln.startswith("config ")]  # the settings, one line
+    assert len(settings) == 1 and str(d["config"]) in settings[0] and "max_cnt" in settings[0], stdout
     s = json.loads((out / "summary.json").read_text())
     for name in (*STREAM_FILES, *OUTPUT_FILES):
         assert (out / name).is_file(), name
@@ -287,3 +289,14 @@ def test_bad_usage(short_inputs, tmp_path, capsys):
     rc, _, err = run_cli(capsys, "demo", "--two-sequences", "--out", tmp_path / "o", "--no-progress")
     assert rc == 2
     assert_one_error_line(err, "--loop")
+
+
+def test_demo_announcement_says_what_is_rendered():
+    """``demo --loop``'s first line counts the frames the render has (the keyframes are the
+    pipeline's own choice, reported in the summary), and states the keyframe rule."""
+    small = dict(width=64, height=48, keyframes_per_lap=8)
+    seq = loop_run.demo_sequence(**small)
+    text = loop_run.demo_announcement(**small)
+    assert f"2 laps, {seq.num_frames} frames 64x48" in text, text
+    assert "x 8 keyframes" not in text and "every 0.1 m or 5 deg" in text
+    assert "the first 10 used" in loop_run.demo_announcement(loop_run.demo_options(max_frames=10), **small)

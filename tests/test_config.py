@@ -93,8 +93,11 @@ freq: 0
 
 
 def test_opencv_quirks(tmp_path):
+    from torch_frontend.errors import ConfigWarning
+
     p = _write(tmp_path, MINI + "M: !!opencv-matrix\n   rows: 2\n   cols: 2\n   dt: f\n   data: [1, 2, 3, 4e-1]\n")
-    cfg = load_config(p)
+    with pytest.warns(ConfigWarning, match="unknown key `M`"):  # not a VINS key: kept in raw, with a warning
+        cfg = load_config(p)
     assert cfg.freq == 100  # freq 0 means 100 Hz (VINS-Mono)
     assert cfg.camera.params_dict()["k1"] == pytest.approx(1e-3)  # '1e-3' is a number, as in OpenCV
     m = cfg.raw["M"]
@@ -242,3 +245,95 @@ def test_import_config_loads_neither_torch_nor_readers():
     out = subprocess.run([sys.executable, "-c", code, str(CONFIGS / "euroc.yaml")], capture_output=True,
                          text=True, cwd=REPO, check=True).stdout.split()
     assert out == [], f"import torch_frontend.config loaded: {out}"
+
+
+# ----------------------------------------------------------------------------------------------
+# key checks: near-misses warn, duplicates are errors, every shipped and VINS config is quiet
+
+
+def test_near_miss_keys_warn_with_the_closest_known_key(tmp_path):
+    from torch_frontend.errors import ConfigWarning
+
+    p = _write(tmp_path, MINI + "equalise: 0\nF_treshold: 2\n")
+    with pytest.warns(ConfigWarning) as caught:
+        cfg = load_config(p)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, ConfigWarning)]
+    assert f"unknown key `equalise` in {p}: did you mean `equalize`?" in msgs[0]
+    assert f"unknown key `F_treshold` in {p}: did you mean `F_threshold`?" in msgs[1]
+    assert len(msgs) == 2
+    assert not cfg.equalize and cfg.F_threshold == 1.0  # ignored, as VINS would (the warning says so)
+    p = _write(tmp_path, MINI + "Max_Cnt: 5\nwidget_colour: 3\n", "d.yaml")
+    with pytest.warns(ConfigWarning) as caught:
+        load_config(p)
+    msgs = [str(w.message) for w in caught]
+    assert "`Max_Cnt`" in msgs[0] and "did you mean `max_cnt`?" in msgs[0]
+    assert "`widget_colour`" in msgs[1] and "not a key VINS" in msgs[1] and "did you mean" not in msgs[1]
+
+
+def test_near_miss_in_a_camera_file_warns(tmp_path):
+    from torch_frontend.errors import ConfigWarning
+
+    cam = (CONFIGS / "euroc_cam0_mei.yaml").read_text()
+    p = _write(tmp_path, cam + "camera_nmae: x\n", "cam0.yaml")
+    with pytest.warns(ConfigWarning, match=r"`camera_nmae`.*did you mean `camera_name`"):
+        load_camera(p)
+
+
+def test_duplicated_key_is_an_error_naming_both_lines(tmp_path):
+    # line 1 is %YAML:1.0; max_cnt is on line 16 of MINI and again on the last line
+    p = _write(tmp_path, MINI + "max_cnt: 19\n")
+    n = len(MINI.splitlines()) + 1
+    first = MINI.splitlines().index("max_cnt: 100") + 1
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    msg = str(info.value)
+    assert str(p) in msg and "max_cnt" in msg and f"line {first} and line {n}" in msg, msg
+    # nested maps too (a camodocal parameter given twice)
+    p = _write(tmp_path, MINI.replace("   fy: 401\n", "   fy: 401\n   fx: 399\n"), "n.yaml")
+    with pytest.raises(ConfigError, match=r"n\.yaml.*'fx'.*line 12 and line 14"):
+        load_config(p)
+
+
+def _config_or_camera(f):
+    raw = read_opencv_yaml(f)
+    if "model_type" in raw and not any(k in raw for k in ("max_cnt", "imu_topic", "cam0_calib")):
+        return load_camera(f)
+    return load_config(f)
+
+
+def _config_warnings(files):
+    from torch_frontend.errors import ConfigWarning
+
+    out = []
+    for f in files:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _config_or_camera(f)
+        out += [f"{f}: {w.message}" for w in caught if issubclass(w.category, ConfigWarning)]
+    return out
+
+
+def test_shipped_configs_load_without_key_warnings():
+    files = sorted(CONFIGS.glob("*.yaml"))
+    assert len(files) >= 6
+    assert _config_warnings(files) == []
+
+
+def test_vins_configs_load_without_key_warnings():
+    """The estimator and pose-graph keys of VINS's own configs are known keys (ignored silently)."""
+    root = SHARED_DATA / "vins_configs"
+    if not root.exists():
+        pytest.skip(f"../shared/data/vins_configs not found beside the repo ({root}); skipping the key sweep")
+    files = sorted(root.rglob("*.yaml"))
+    assert len(files) >= 50
+    assert _config_warnings(files) == []
+
+
+def test_settings_line():
+    cfg = load_config(CONFIGS / "euroc.yaml")
+    line = cfg.settings_line()
+    assert "\n" not in line
+    for part in ("PINHOLE 752x480", "max_cnt 150", "min_dist 30", "freq 10 Hz", "equalize 1", "F_threshold 1",
+                 "fisheye 0"):
+        assert part in line, line
+    assert "num_of_cam 2" in load_config(CONFIGS / "euroc_stereo_mei.yaml").settings_line()

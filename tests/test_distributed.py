@@ -200,6 +200,7 @@ def test_torchrun_track_two_ranks_matches_one_process(inputs, tmp_path):
     res = run_torchrun(args)
     assert res.returncode == 0, res.stderr
     assert "ranks         2 (gloo)" in res.stdout and res.stdout.count("streams       3") == 1  # rank 0 prints
+    assert res.stdout.count("config        ") == 1 and "max_cnt" in res.stdout  # the settings, once
     s = json.loads((out / "summary.json").read_text())
     index = json.loads((out / "index.json").read_text())
     assert [e["rank"] for e in index["streams"]] == [0, 0, 1]

@@ -31,15 +31,109 @@ def test_readme_is_short_and_its_links_resolve():
             assert (page.parent / target).exists(), f"{page.relative_to(REPO)}: link to {target} is broken"
 
 
-def test_readme_api_tour_runs(monkeypatch):
-    """The README's Python block runs as written, from the repo root."""
-    code = re.findall(r"```python\n(.*?)```", _readme(), re.S)
-    assert len(code) == 1
+# ----------------------------------------------------------------------------------------------
+# every code block of the README and docs/*.md runs (python) or parses (shell), as written
+#
+# A block that cannot run has the line ``<!-- not run: <reason> -->`` right above its fence.
+# ``text`` blocks are output listings (docs/cli.md's --help pages, checked against the parser
+# below), not code.
+
+FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+NOT_RUN = re.compile(r"<!--\s*not run:\s*(.*?)\s*-->\s*$")
+SHELL = ("bash", "sh", "shell", "console", "")
+
+
+def _blocks(page):
+    """``[(lang, code, line, not-run reason or None)]`` of the fenced blocks of ``page``."""
+    text = page.read_text(encoding="utf-8")
+    out = []
+    for m in FENCE.finditer(text):
+        line = text.count("\n", 0, m.start()) + 1
+        before = text[:m.start()].rstrip("\n").rsplit("\n", 1)[-1]
+        marker = NOT_RUN.search(before)
+        out.append((m.group(1), m.group(2), line, marker.group(1) if marker else None))
+    return out
+
+
+PAGES = [README, *DOCS]
+PYTHON_PAGES = [p for p in PAGES if any(lang == "python" for lang, *_ in _blocks(p))]
+
+
+def test_every_block_is_known():
+    for page in PAGES:
+        for lang, _, line, reason in _blocks(page):
+            where = f"{page.relative_to(REPO)}:{line}"
+            assert lang in ("python", "text", *SHELL), f"{where}: a ```{lang} block: run it here or mark it"
+            assert reason is None or reason.strip(), f"{where}: 'not run:' needs a reason"
+    assert README in PYTHON_PAGES and REPO / "docs" / "loop_closure.md" in PYTHON_PAGES
+
+
+@pytest.mark.parametrize("page", PYTHON_PAGES, ids=lambda p: p.name)
+def test_python_blocks_run(page, monkeypatch):
+    """The page's ``python`` blocks run as written, in order in one namespace, from the repo root
+    (against the sample data in the package)."""
     monkeypatch.chdir(REPO)
-    namespace: dict = {}
-    exec(compile(code[0], str(README), "exec"), namespace)
-    assert namespace["x"].grad is not None and namespace["x"].grad.abs().sum() > 0
-    assert int(namespace["frame"].present.sum()) > 100  # features tracked through the sample
+    namespace: dict = {"__name__": "__docs__"}
+    ran = 0
+    for lang, code, line, reason in _blocks(page):
+        if lang != "python" or reason is not None:
+            continue
+        # line numbers of tracebacks point into the page
+        exec(compile("\n" * line + code, str(page), "exec"), namespace)
+        ran += 1
+    assert ran >= 1
+    if page == README:
+        assert namespace["x"].grad is not None and namespace["x"].grad.abs().sum() > 0
+        assert int(namespace["frame"].present.sum()) > 100  # features tracked through the sample
+        assert not namespace["frame"].published.any() and not namespace["frame"].valid.any()  # as the tour says
+        assert namespace["f"].valid.any()
+
+
+def _shell_commands(code: str):
+    """The command lines of a shell block (continuations joined, comments dropped)."""
+    import shlex
+
+    for cmd in code.replace("\\\n", " ").splitlines():
+        words = shlex.split(cmd, comments=True)
+        if words:
+            yield words
+
+
+def _cli_args(words):
+    """The ``torch-frontend`` arguments of a command line, or None when it is not one."""
+    if words[0] == "torch-frontend":
+        return words[1:]
+    if "-m" in words and words[words.index("-m") + 1] in ("torch_frontend", "torch_frontend.cli"):
+        if words[0] in ("python", "python3", "torchrun") or words[0].endswith("python"):
+            return words[words.index("-m") + 2:]
+    return None
+
+
+def test_shell_blocks_parse():
+    """Every command line of a shell block is a ``make`` target of the Makefile or a
+    ``torch-frontend`` command the parser accepts (the paths are examples: they are not run)."""
+    from torch_frontend.cli import build_parser
+
+    targets = set(re.findall(r"^([\w-]+):", (REPO / "Makefile").read_text(), re.M))
+    checked = 0
+    for page in PAGES:
+        for lang, code, line, reason in _blocks(page):
+            if lang not in SHELL or reason is not None:
+                continue
+            for words in _shell_commands(code):
+                where = f"{page.relative_to(REPO)}:{line}: {' '.join(words)}"
+                if words[0] == "make":
+                    assert set(words[1:]) <= targets, where
+                    checked += 1
+                    continue
+                args = _cli_args(words)
+                assert args is not None, f"{where}: not a torch-frontend or make command (mark the block)"
+                try:
+                    build_parser().parse_args(args)
+                except SystemExit as exc:
+                    pytest.fail(f"{where}: the parser refuses it (exit {exc.code})")
+                checked += 1
+    assert checked >= 15
 
 
 @pytest.mark.skipif(not (3, 10) <= sys.version_info[:2] <= (3, 12),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import warnings
 
 import cv2
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 import torch
 
 from tests.conftest import SAMPLE, load_gray, sample_frames, shared_data_or_skip
+from torch_frontend.errors import DataWarning
 from torch_frontend.io import (
     DataError,
     EurocSequence,
@@ -209,7 +211,14 @@ def test_rosbag_reader(tmp_path, version, kind):
     assert list_image_topics(path) == [TOPIC]
     seq = RosbagSequence(path, TOPIC)
     assert len(seq) == 3
-    got = list(seq)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = list(seq)
+    notes = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+    if kind in ("bgr8", "rgb8"):  # one note for the sequence, naming its colour order
+        assert len(notes) == 1 and "colour frames" in notes[0] and kind[:3].upper() in notes[0], notes
+    else:
+        assert notes == []
     assert [f.stamp_ns for f in got] == [s for s, _ in frames]  # header stamps, not bag times
     for f, (_, img) in zip(got, frames):
         assert f.image.dtype == np.uint8

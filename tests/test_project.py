@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from .conftest import REPO
 
 
@@ -26,6 +28,38 @@ def test_makefile_installs_cpu_torch_first():
     assert torch_line < editable
     for target in ("demo:", "test:", "test-all:", "bench:"):
         assert re.search(rf"^{target}", mk, re.M)
+
+
+def test_install_says_which_torch_build_and_how_to_get_the_cpu_one():
+    """The README does not promise a CPU torch the default index may not give; ``TORCH_INDEX``
+    (empty by default: the machine's own index) selects the CPU wheels' index."""
+    import shutil
+    import subprocess
+
+    readme = (REPO / "README.md").read_text()
+    assert "(CPU build)" not in readme and "installs (CPU torch)" not in readme
+    assert "TORCH_INDEX=https://download.pytorch.org/whl/cpu" in readme and "CUDA build" in readme
+    if shutil.which("make") is None:
+        pytest.skip("no make on this machine")
+    dry = ["make", "-n", "-B", "-C", str(REPO), ".venv/.installed"]
+    plain = subprocess.run(dry, capture_output=True, text=True, check=True).stdout
+    cpu = subprocess.run(dry + ["TORCH_INDEX=https://download.pytorch.org/whl/cpu"], capture_output=True, text=True,
+                         check=True).stdout
+    assert "torch==2.13.0" in plain and "--index-url" not in plain
+    assert "torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu" in cpu
+
+
+def test_license_is_an_spdx_string():
+    """``project.license`` as an SPDX string (the TOML-table form makes setuptools >= 77 print a
+    deprecation warning on every install), and a setuptools that reads it."""
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        pytest.skip("tomllib needs Python >= 3.11")
+    meta = tomllib.loads((REPO / "pyproject.toml").read_text())
+    assert meta["project"]["license"] == "Apache-2.0"
+    assert set(meta["project"]["license-files"]) == {"LICENSE", "NOTICE"}
+    assert "setuptools>=77" in meta["build-system"]["requires"]
 
 
 def test_readme_opens_with_what_and_two_commands():

@@ -160,7 +160,7 @@ def format_summary(s: Dict[str, Any]) -> str:
                      f"plots, tracks/; index.json, summary.json)")
     elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
-                     f"features_per_frame.png, track_length_hist.png, tracks/)")
+                     f"features_per_frame.png, track_length_hist.png, track_paths.png, tracks/)")
     return "\n".join(lines)
 
 
@@ -234,20 +234,33 @@ def _input_options(args: argparse.Namespace) -> Dict[str, Any]:
                 workers=args.workers)
 
 
+def _resolved_config(config, sources, opt):
+    """The run's ``TrackerConfig`` (after the options are checked, so that a bad option is still
+    the first error), its settings printed on one line (rank 0 under ``torchrun``)."""
+    from .pipelines.inputs import resolve_config
+
+    opt.check()
+    cfg = resolve_config(config, sources, opt.camera)
+    if _rank() == 0:
+        print(cfg.settings_line(), flush=True)
+    return cfg
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
     from .pipelines.track import TrackOptions, run_track
 
     sources = args.sources or []
     _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks)
+    config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
 
-        summary = run_track_sharded(args.config, sources, args.out, opt, timeout=args.timeout)
+        summary = run_track_sharded(config, sources, args.out, opt, timeout=args.timeout)
         if summary is not None:  # rank 0
             print(format_summary(summary))
         return 0
-    print(format_summary(run_track(args.config, sources, args.out, opt)))
+    print(format_summary(run_track(config, sources, args.out, opt)))
     return 0
 
 
@@ -266,31 +279,48 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
     )
+    config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_loop_sharded
 
-        summary = run_loop_sharded(args.config, sources, args.poses or [], args.out, opt,
+        summary = run_loop_sharded(config, sources, args.poses or [], args.out, opt,
                                    ground_truth=args.ground_truth, timeout=args.timeout)
         if summary is not None:  # rank 0
             print(format_loop_summary(summary))
         return 0
-    run = run_loop(args.config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
+    run = run_loop(config, sources, args.poses or [], args.out, opt, ground_truth=args.ground_truth)
     print(format_loop_summary(run.summary))
     return 0
 
 
 def _cmd_demo_loop(args: argparse.Namespace) -> int:
-    from .pipelines.loop import DEMO_RENDER, demo_loop, demo_options
+    from .pipelines.loop import demo_announcement, demo_loop, demo_options
 
     # one intra-op thread by default, as every command (_thread_policy; measured here: > 10 min
     # instead of ~40 s with 2 threads while another process kept one of 2 cores busy)
     out = Path("out/demo_loop") if args.out == Path("out/demo") else args.out
-    print(f"demo          synthetic revisit sequence: {DEMO_RENDER['laps']} laps x {DEMO_RENDER['keyframes_per_lap']} "
-          f"keyframes, {DEMO_RENDER['width']}x{DEMO_RENDER['height']}, drifted VIO poses, ground truth")
     opt = demo_options(separate_graphs=args.separate_graphs, device=args.device or "cpu", progress=_progress(args),
                        tracker_mode=args.mode, max_frames=args.max_frames)
+    print(f"demo          {demo_announcement(opt)}")
     run = demo_loop(out, opt, two_sequences=args.two_sequences)
     print(format_loop_summary(run.summary))
+    return 0
+
+
+def _cmd_demo_flight(args: argparse.Namespace) -> int:
+    from .pipelines.track import DEMO_FLIGHT, TrackOptions, demo_flight_inputs, run_track
+
+    if args.config is not None:
+        raise _UsageError("--config does not go with --flight (the flight has its own camera)")
+    out = Path("out/demo_flight") if args.out == Path("out/demo") else args.out
+    H, W = DEMO_FLIGHT["size"]
+    print(f"demo          synthetic flight over the package photo: {DEMO_FLIGHT['frames']} frames {W}x{H} at "
+          f"{DEMO_FLIGHT['rate']:g} Hz, ~2.5 px/frame across, turning and zooming slowly")
+    cfg, sources = demo_flight_inputs()
+    print(cfg.settings_line())
+    opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
+                       write_tracks=not args.no_tracks, progress=_progress(args))
+    print(format_summary(run_track(cfg, sources, out, opt)))
     return 0
 
 
@@ -298,10 +328,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from .config import load_config
     from .pipelines.track import TrackOptions, run_track
 
+    if args.loop and args.flight:
+        raise _UsageError("--loop and --flight are two demos: give one")
     if args.loop:
         return _cmd_demo_loop(args)
     if args.two_sequences or args.separate_graphs:
         raise _UsageError("--two-sequences and --separate-graphs go with --loop")
+    if args.flight:
+        return _cmd_demo_flight(args)
     cfg = load_config(args.config or default_config_path())
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
@@ -440,7 +474,7 @@ def _add_track(sub) -> None:
         help="track one or more sequences (EuRoC/TUM-VI folders, ROS bags, image folders) and write results",
         description="Track one or more sequences as B streams of one batched tracker and write "
                     "features.csv, features.npz, summary.json, features_per_frame.png, "
-                    "track_length_hist.png and tracks/ into --out. Inputs may be repeated and mixed; "
+                    "track_length_hist.png, track_paths.png and tracks/ into --out. Inputs may be repeated and mixed; "
                     "each is one stream with its own timestamps.",
         epilog="example: torch-frontend track configs/euroc.yaml --euroc MH_01_easy --euroc MH_02_easy "
                "--out out/mh --max-frames 200",
@@ -463,6 +497,10 @@ def _add_demo(sub) -> None:
     )
     demo.add_argument("--config", type=Path, default=None, help="VINS config (default: configs/euroc.yaml)")
     _add_run_options(demo, "out/demo")
+    demo.add_argument("--flight", action="store_true",
+                      help="instead: track a synthetic flight over the package photo (32 frames, the camera "
+                           "moving ~2.5 px/frame: tracks that move, see track_paths.png); writes into --out "
+                           "(default: out/demo_flight)")
     dloop = demo.add_argument_group("loop closure demo")
     dloop.add_argument("--loop", action="store_true",
                        help="instead: render a synthetic sequence that revisits places (two laps, drifted VIO "
@@ -647,6 +685,34 @@ def _interrupt_signals():
             signal.signal(sig, prev)
 
 
+@contextlib.contextmanager
+def _config_warnings():
+    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
+    ``torch-frontend: warning: ...`` and an input's ``DataWarning`` (colour frames made grey) as
+    ``torch-frontend: note: ...`` inside the block; other warnings as Python prints them."""
+    import warnings
+
+    from .errors import ConfigWarning, DataWarning
+
+    shown = warnings.showwarning
+    rank = _rank()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, ConfigWarning):
+            if rank == 0:  # under torchrun every rank reads the config: rank 0 says it once
+                print(f"torch-frontend: warning: {message}", file=sys.stderr)
+        elif issubclass(category, DataWarning):
+            print(f"torch-frontend: note: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
 def _rank() -> int:
     """This process's rank under a launcher (0 without one)."""
     from .distributed.env import dist_env
@@ -676,7 +742,7 @@ def main(argv: List[str] | None = None) -> int:
 
     try:
         threads = _thread_policy(args.threads) if hasattr(args, "threads") else contextlib.nullcontext()
-        with _interrupt_signals(), threads:
+        with _interrupt_signals(), threads, _config_warnings():
             return int(args.func(args) or 0)
     except (ConfigError, _UsageError) as exc:
         error(exc, str(exc))

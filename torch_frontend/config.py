@@ -14,6 +14,16 @@ A VINS-Mono config (a camodocal block in the same file) must give ``image_width`
 ``FeatureTracker`` then refuses the config by name). A config with neither (an estimator-only config such as VINS's simulation config)
 loads with ``camera=None`` and the tracker keys left at their defaults.
 
+Keys: the top-level keys of a config or camera file are checked against ``KNOWN_KEYS``: every key
+VINS-Mono's and VINS-Fusion's nodes read (front end, estimator, pose graph, camodocal camera;
+spec §1.2-§1.6), known or not to this front end, and ``F_method``. The keys the front end does not
+use (``acc_n``, ``td``, ``output_path``, ...) are ignored silently, as VINS's other nodes read
+them. Any other key is ignored with a ``ConfigWarning``: "unknown key `equalise` in <file>: did
+you mean `equalize`?" for a near-miss of a known key (``difflib``, letter case ignored), "not a
+key VINS reads" otherwise. A key given twice is a ``ConfigError`` naming both lines
+(``opencv_yaml``). The keys inside the camera's parameter maps are checked by the camera models
+(a missing one is an error).
+
 Without a VINS config, an ASL (EuRoC / TUM-VI) camera's ``sensor.yaml`` (Kalibr format) gives the
 camera: ``resolution: [W, H]``, ``intrinsics: [fu, fv, cu, cv]`` and ``distortion_model`` +
 ``distortion_coefficients``: ``radial-tangential`` ``[k1, k2, p1, p2]`` -> ``PinholeCamera``;
@@ -28,6 +38,7 @@ models (torch) are imported when a camera is built.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import warnings
 from pathlib import Path
@@ -35,7 +46,7 @@ from typing import Any, Dict, List, Optional, Union
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, ConfigWarning
 from .opencv_yaml import read_opencv_yaml
 
 PathLike = Union[str, Path]
@@ -50,6 +61,33 @@ _REQUIRED = {
     "fusion": ("image_width", "image_height"),
     "estimator": (),
 }
+# Every top-level key a VINS node reads (spec §1.2-§1.6; the union of the keys of every config
+# VINS-Mono and VINS-Fusion ship), by what reads it. Keys outside these get a ConfigWarning.
+FRONTEND_KEYS = frozenset({
+    "image_topic", "imu_topic", "image0_topic", "image1_topic", "max_cnt", "min_dist", "freq",
+    "F_threshold", "show_track", "equalize", "fisheye", "flow_back", "num_of_cam", "cam0_calib",
+    "cam1_calib", "image_width", "image_height",
+    "F_method",  # torch-frontend's own: rejectWithF's estimator
+})
+CAMERA_KEYS = frozenset({
+    "model_type", "camera_name", "image_width", "image_height", "distortion_parameters",
+    "projection_parameters", "mirror_parameters", "poly_parameters", "inv_poly_parameters", "affine_parameters",
+})
+POSE_GRAPH_KEYS = frozenset({
+    "loop_closure", "pose_graph_save_path", "output_path", "save_image", "visualize_imu_forward",
+    "visualize_camera_size", "load_previous_pose_graph", "fast_relocalization",
+})
+ESTIMATOR_KEYS = frozenset({
+    "imu", "acc_n", "acc_w", "gyr_n", "gyr_w", "g_norm", "estimate_extrinsic", "ex_calib_result_path",
+    "extrinsicRotation", "extrinsicTranslation", "body_T_cam0", "body_T_cam1", "estimate_td", "td",
+    "rolling_shutter", "rolling_shutter_tr", "max_solver_time", "max_num_iterations", "keyframe_parallax",
+    "multiple_thread",
+})
+KNOWN_KEYS = FRONTEND_KEYS | CAMERA_KEYS | POSE_GRAPH_KEYS | ESTIMATOR_KEYS
+# difflib ratio above which an unknown key is taken for a typo of a known one ("equalise" ->
+# "equalize" 0.88, "F_treshold" -> "F_threshold" 0.95, "max_count" -> "max_cnt" 0.88)
+NEAR_MISS_RATIO = 0.75
+
 # VINS-Mono's euroc_config.yaml front-end values, used when only a sensor.yaml is given.
 EUROC_FRONTEND = dict(max_cnt=150, min_dist=30, freq=10, F_threshold=1.0, equalize=True, fisheye=False)
 # ``F_method`` (not a VINS key): rejectWithF's estimator, ``torch_frontend.ransac``'s ``method``
@@ -113,6 +151,19 @@ class TrackerConfig:
             raise ConfigError(f"expected one of {', '.join(map(repr, F_METHODS))}, got {self.F_method!r}",
                               self.path, "F_method")
 
+    def settings_line(self) -> str:
+        """One line of the settings that change what the tracker does (what ``track`` and
+        ``loop`` print before they run): camera model and size, ``max_cnt``, ``min_dist``,
+        ``freq``, ``equalize``, ``F_threshold``, ``fisheye`` (and ``flow_back``, ``num_of_cam``,
+        ``F_method`` where they differ from VINS-Mono's)."""
+        model = getattr(self.camera, "model_type", "no camera")
+        extra = "".join([f", F_method {self.F_method}" if self.F_method != "opencv" else "",
+                         ", flow_back 1" if self.flow_back else "",
+                         f", num_of_cam {self.num_of_cam}" if self.num_of_cam != 1 else ""])
+        return (f"config        {self.path}: {model} {self.image_width}x{self.image_height}, max_cnt {self.max_cnt}, "
+                f"min_dist {self.min_dist}, freq {self.freq} Hz, equalize {int(self.equalize)}, "
+                f"F_threshold {self.F_threshold:g}, fisheye {int(self.fisheye)}{extra}")
+
     def summary(self) -> str:
         """A few human-readable lines (what ``make demo`` prints)."""
         lines = [
@@ -173,6 +224,26 @@ def _get_matrix(raw: Dict[str, Any], key: str, path: str, shape) -> Optional[np.
     return v.astype(np.float64)
 
 
+def closest_known_key(key: str) -> Optional[str]:
+    """The known key ``key`` is most likely a typo of (letter case ignored), or None when no known
+    key is close (``NEAR_MISS_RATIO``)."""
+    by_lower = {k.lower(): k for k in sorted(KNOWN_KEYS)}
+    hit = difflib.get_close_matches(str(key).lower(), list(by_lower), n=1, cutoff=NEAR_MISS_RATIO)
+    return by_lower[hit[0]] if hit else None
+
+
+def check_keys(raw: Dict[str, Any], path: PathLike, *, stacklevel: int = 3) -> List[str]:
+    """Warn (``ConfigWarning``) once per top-level key of ``raw`` that is not in ``KNOWN_KEYS``,
+    naming the closest known key when there is one; returns those keys."""
+    unknown = [k for k in raw if k not in KNOWN_KEYS]
+    for k in unknown:
+        near = closest_known_key(k)
+        hint = (f"did you mean `{near}`? (the key is ignored)" if near is not None else
+                "not a key VINS or torch-frontend reads (ignored)")
+        warnings.warn(f"unknown key `{k}` in {path}: {hint}", ConfigWarning, stacklevel=stacklevel)
+    return unknown
+
+
 def load_camera(path: PathLike):
     """Load a camodocal camera YAML (``model_type`` PINHOLE, MEI, KANNALA_BRANDT, SCARAMUZZA,
     PINHOLE_FULL, any letter case) and return the camera model.
@@ -184,6 +255,7 @@ def load_camera(path: PathLike):
     from .camera import camera_from_config
 
     raw = read_opencv_yaml(path)
+    check_keys(raw, path)
     return camera_from_config(raw, path=str(path))
 
 
@@ -212,9 +284,13 @@ def load_config(path: PathLike) -> TrackerConfig:
         The config, with ``camera`` (and ``camera1`` for stereo) built from the camera block or
         calibration files, or ``camera=None`` for an estimator-only config.
 
+    Warns:
+        ConfigWarning: a key that is not in ``KNOWN_KEYS`` (ignored), naming the closest known key
+            ("did you mean `equalize`?").
+
     Raises:
-        ConfigError: a missing file, a missing required key, a wrong type, an unknown
-            ``model_type``, a negative ``freq`` or a camera value the model cannot work with
+        ConfigError: a missing file, a key given twice (both lines named), a missing required key,
+            a wrong type, an unknown ``model_type``, a negative ``freq`` or a camera value the model cannot work with
             (``fx: 0``: ``CameraModel.param_problems``); the message names the file, the key and
             what was expected.
     """
@@ -223,6 +299,7 @@ def load_config(path: PathLike) -> TrackerConfig:
     p = Path(path)
     raw = read_opencv_yaml(p)
     sp = str(p)
+    check_keys(raw, sp)
     cfg = TrackerConfig(path=sp, raw=raw)
 
     has_block = _has_camera_block(raw)
@@ -363,8 +440,12 @@ def config_from_sensor_yaml(path: PathLike, **overrides) -> TrackerConfig:
 __all__ = [
     "EUROC_FRONTEND",
     "F_METHODS",
+    "KNOWN_KEYS",
     "ConfigError",
+    "ConfigWarning",
     "TrackerConfig",
+    "check_keys",
+    "closest_known_key",
     "camera_from_sensor_yaml",
     "config_from_sensor_yaml",
     "load_camera",

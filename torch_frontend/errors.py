@@ -21,6 +21,17 @@ class ConfigError(ValueError):
         super().__init__(f"{prefix}: {message}" if prefix else message)
 
 
+class ConfigWarning(UserWarning):
+    """A config file has a key that nothing reads: a near-miss of a known key (``equalise``, "did
+    you mean ``equalize``?") or a key that neither VINS nor torch-frontend reads. The key is
+    ignored, as VINS would ignore it (``torch_frontend.config.KNOWN_KEYS``)."""
+
+
+class DataWarning(UserWarning):
+    """A note about input data that is used, but not as given: colour frames converted to grey
+    (once per sequence). The CLI prints it as one ``torch-frontend: note: ...`` line."""
+
+
 class DataError(ValueError):
     """Input data is missing, unreadable or inconsistent (a user error, not a bug).
 

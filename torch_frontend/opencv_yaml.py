@@ -4,7 +4,9 @@ OpenCV's dialect is not plain YAML (see the spec §1.1): the first line is ``%YA
 rejects it), matrices are tagged ``!!opencv-matrix`` with ``rows``/``cols``/``dt``/``data``, and
 OpenCV reads ``1e-3`` as a number where PyYAML's YAML 1.1 resolver reads a string. This module
 strips the header, turns matrices into numpy arrays of the right shape and dtype, and coerces
-number-like strings.
+number-like strings. A key given twice in one map is a ``ConfigError`` naming the key and both
+lines: PyYAML would keep the last value and ``cv2.FileStorage`` keeps the first (measured with
+OpenCV 4.x), so the file means different things to different readers.
 
 A foundation module (numpy and PyYAML only): ``config`` and ``camera`` read their files with it.
 """
@@ -24,8 +26,27 @@ _DT = {"d": np.float64, "f": np.float32, "i": np.int32, "u": np.uint8, "s": np.i
 _NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 
 
+class _DuplicateKey(Exception):
+    """A key given twice in one mapping (turned into a ``ConfigError`` naming the file)."""
+
+    def __init__(self, key: str, first_line: int, second_line: int):
+        super().__init__(key)
+        self.key, self.first_line, self.second_line = key, first_line, second_line
+
+
 class _Loader(yaml.SafeLoader):
-    pass
+    def construct_mapping(self, node, deep=False):
+        # PyYAML silently keeps the last of two equal keys: refuse them (0-based lines of the body)
+        if isinstance(node, yaml.MappingNode):
+            seen: Dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue
+                key = key_node.value
+                if key in seen:
+                    raise _DuplicateKey(str(key), seen[key], key_node.start_mark.line)
+                seen[key] = key_node.start_mark.line
+        return super().construct_mapping(node, deep=deep)
 
 
 def _construct_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> Dict[str, Any]:
@@ -78,13 +99,18 @@ def read_opencv_yaml(path: Union[str, Path]) -> Dict[str, Any]:
         raise ConfigError(f"cannot read: {exc}", p) from None
     lines = text.splitlines()
     # OpenCV's own header: '%YAML:1.0' (or '%YAML 1.0'); PyYAML rejects the colon form.
+    skipped = 0
     if lines and lines[0].lstrip().startswith("%YAML"):
-        lines = lines[1:]
+        lines, skipped = lines[1:], 1
     body = "\n".join(lines)
     try:
         docs = [d for d in yaml.load_all(body, Loader=_Loader) if d is not None]
     except yaml.YAMLError as exc:
         raise ConfigError(f"not valid OpenCV YAML: {exc}", p) from None
+    except _DuplicateKey as dup:
+        a, b = dup.first_line + 1 + skipped, dup.second_line + 1 + skipped  # 1-based lines of the file
+        raise ConfigError(f"given twice, on line {a} and line {b} (cv2.FileStorage would keep the first value, "
+                          f"PyYAML the last); keep one", p, dup.key) from None
     if not docs:
         return {}
     data = docs[0]

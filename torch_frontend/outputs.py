@@ -4,8 +4,10 @@ Convention:
     ``RunRecorder.add(batch, frame)`` is called once per tracker step with the ``MultiStream``
     batch and the ``FeatureFrame``; only alive streams count. A *published feature* is a slot with
     ``frame.valid`` (what VINS would publish: mono ``track_cnt > 1`` on published frames).
-    A track's length is the largest ``track_count`` its id reached (frames it was tracked in,
-    published or not).
+    A *track* is an id that was published at least once; its length is the largest
+    ``track_count`` it was published with (VINS's ``track_cnt``: the frames it was tracked in,
+    published or not). Features detected and lost between two published frames never reached
+    VINS and are not tracks (the summary's ``tracks``, mean and median lengths, the histogram).
 
     The output set is written as a whole: a run fills a hidden temporary folder beside ``out``
     (``.<out>.tf<pid>-<random>.tmp``, created when the recorder is, ``tracks/`` growing in it during
@@ -34,8 +36,12 @@ Outputs in ``out``:
       (whole loop: reading, tracking, recording; ``tracker_seconds``: the tracker calls alone),
       ``skipped_bad_frames`` and ``skipped`` (stream, source, reason), ``per_stream``, and the run's
       ``config``, ``mode``, ``device``, ``inputs``.
-    * ``features_per_frame.png``, ``track_length_hist.png``: matplotlib (Agg) plots.
-    * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream.
+    * ``features_per_frame.png``, ``track_length_hist.png``, ``track_paths.png``: matplotlib (Agg)
+      plots; ``track_paths.png`` draws each published track's path in the image (``u, v`` of its
+      published frames; the first 4 streams), coloured by length: dots for a still camera, lines
+      that follow the motion for a moving one.
+    * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream
+      (``stamp_ns`` zero-padded to 19 digits, so the names sort in time order).
     * ``written-by-torch-frontend.json``: the marker (``_atomic.MARKER``).
 """
 
@@ -43,6 +49,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 from pathlib import Path
 from typing import Any, Dict, List, Sequence
@@ -61,7 +68,8 @@ from ._atomic import (
 
 CSV_COLUMNS = ("stream", "timestamp", "id", "x", "y", "u", "v", "vx", "vy", "track_count")
 #: the files of a run (besides ``tracks/`` and the marker)
-OUTPUT_FILES = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png")
+OUTPUT_FILES = ("features.csv", "features.npz", "summary.json", "features_per_frame.png", "track_length_hist.png",
+                "track_paths.png")
 #: what an ``out`` folder written before the marker existed may hold to be replaced (``_atomic``)
 LEGACY_OUTPUTS = (
     "(" + "|".join(re.escape(n) for n in OUTPUT_FILES) + ")",
@@ -122,9 +130,12 @@ class RunRecorder:
         self.published = np.zeros(self.B, dtype=np.int64)
         self.per_frame: List[List[tuple]] = [[] for _ in range(self.B)]  # (step, t, present, published or -1)
         self.track_images = 0
+        self._size: tuple | None = None  # (H, W) of the frames, pixels (track_paths.png's axes)
         self._tmp_tracks: Path | None = None
-        # created first, so that a file at ``out`` or a read-only place fails before the run
-        self.out.mkdir(parents=True, exist_ok=True)
+        # created first, so that a file at ``out`` or a read-only place fails before the run; a
+        # file at ``out`` is StagedFolder's "is a file, not a folder" (mkdir's would be "File exists")
+        if not os.path.lexists(self.out):
+            self.out.mkdir(parents=True, exist_ok=True)
         self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS)
         if self.write_tracks:
             self._tmp_tracks = self._stage.path / "tracks"
@@ -150,6 +161,7 @@ class RunRecorder:
     def add(self, batch, frame) -> None:
         """Record one step: ``batch`` (``io.Batch``) and ``frame`` (``FeatureFrame``)."""
         alive = batch.alive.cpu().numpy().astype(bool)
+        self._size = tuple(int(x) for x in batch.images.shape[-2:])
         valid = frame.valid.cpu().numpy() & alive[:, None]
         present = frame.present.cpu().numpy() & alive[:, None]
         published = frame.published.cpu().numpy().astype(bool) & alive
@@ -161,11 +173,11 @@ class RunRecorder:
         for b in np.flatnonzero(alive):
             n_pub = int(valid[b].sum()) if published[b] else -1
             self.per_frame[b].append((batch.step, int(stamps[b]), int(present[b].sum()), n_pub))
-        # track lengths: every feature in the table, its current count (max taken at the end)
-        sb, sk = np.nonzero(present & (ids >= 0))
-        if sb.size:
-            self._lengths.append(np.stack([sb, ids[sb, sk], cnt[sb, sk]], axis=1).astype(np.int64))
         vb, vk = np.nonzero(valid)
+        # track lengths: every published feature, its count then (max taken at the end); a feature
+        # that was detected and lost between two published frames never reached VINS: not a track
+        if vb.size:
+            self._lengths.append(np.stack([vb, ids[vb, vk], cnt[vb, vk]], axis=1).astype(np.int64))
         if vb.size:
             xy = frame.xy.detach().cpu().double().numpy()
             uv = frame.uv.detach().cpu().double().numpy()
@@ -188,7 +200,8 @@ class RunRecorder:
                 img = draw_tracks(batch.raw[b], frame, int(b))
                 d = self._tmp_tracks / f"stream{b}"
                 d.mkdir(exist_ok=True)
-                if not cv2.imwrite(str(d / f"{int(stamps[b])}.png"), img):
+                # zero-padded nanoseconds (19 digits, as EuRoC names them): names sort in time order
+                if not cv2.imwrite(str(d / f"{int(stamps[b]):019d}.png"), img):
                     raise OSError(f"cannot write track image into {d}")
                 self.track_images += 1
 
@@ -207,7 +220,8 @@ class RunRecorder:
         return cols
 
     def track_lengths(self) -> np.ndarray:
-        """Length (largest ``track_count``) of every track (stream, id), as an int64 array."""
+        """Length (largest published ``track_count``) of every published track (stream, id), as an
+        int64 array (features that were never published are not counted)."""
         if not self._lengths:
             return np.zeros(0, dtype=np.int64)
         a = np.concatenate(self._lengths)
@@ -330,7 +344,49 @@ class RunRecorder:
         ax.grid(True, alpha=0.3)
         fig.tight_layout()
         out.append(self._save_fig(fig, d, "track_length_hist.png"))
+        out.append(self._track_paths(d))
         return out
+
+    #: streams drawn in ``track_paths.png``
+    PATH_PANELS = 4
+
+    def _track_paths(self, d: Path) -> str:
+        """``track_paths.png``: the published tracks' paths in the image, per stream."""
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.collections import LineCollection
+        from matplotlib.figure import Figure
+
+        cmap = colormaps["coolwarm"]  # blue: short tracks, red: long ones (as the track images)
+        cols = self.columns()
+        n = max(1, min(self.B, self.PATH_PANELS))
+        fig = Figure(figsize=(5.5 * n, 4.2), dpi=100)
+        FigureCanvasAgg(fig)
+        for b in range(n):
+            ax = fig.add_subplot(1, n, b + 1)
+            m = cols["stream"] == b
+            ids, stamp = cols["id"][m], cols["stamp_ns"][m]
+            uv = np.stack([cols["u"][m], cols["v"][m]], axis=1)
+            order = np.lexsort((stamp, ids))  # per track, in time order
+            ids, uv = ids[order], uv[order]
+            cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
+            paths = np.split(uv, cuts) if ids.size else []
+            lengths = np.array([len(p) for p in paths], dtype=np.float64)
+            if paths:
+                hi = max(2.0, float(lengths.max()))
+                ax.add_collection(LineCollection(paths, colors=cmap(lengths / hi), linewidths=1.0))
+                ends = np.stack([p[-1] for p in paths])
+                ax.scatter(ends[:, 0], ends[:, 1], s=4, c=cmap(lengths / hi))
+            h, w = self._size if self._size is not None else (1, 1)
+            ax.set_xlim(0, w)
+            ax.set_ylim(h, 0)  # image rows down
+            ax.set_aspect("equal")
+            moved = float(np.median([np.linalg.norm(p[-1] - p[0]) for p in paths])) if paths else 0.0
+            ax.set_title(f"{self.names[b]}: {len(paths)} tracks, median path {moved:.1f} px", fontsize=9)
+            ax.set_xlabel("u (px)")
+            ax.set_ylabel("v (px)")
+        fig.tight_layout()
+        return self._save_fig(fig, d, "track_paths.png")
 
     def _save_fig(self, fig, d: Path, name: str) -> str:
         buf = io.BytesIO()

@@ -8,21 +8,31 @@ Convention:
     naming the file or message; with ``skip_bad=True`` it is skipped instead and recorded in
     ``Sequence.skipped`` as ``(source, reason)``.
 
-    Colour images become grey with OpenCV's BGR→grey weights; 16-bit images are reduced to 8 bits
-    by dropping the low byte (``>> 8``), the usual mono16→mono8 rule.
+    Colour images become grey with OpenCV's BGR→grey weights, with one ``DataWarning`` per pass
+    over a sequence that has them (a note: the tracker works on grey images); 16-bit images are
+    reduced to 8 bits by dropping the low byte (``>> 8``), the usual mono16→mono8 rule.
 """
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
 import struct
+import warnings
 import zlib
 from pathlib import Path
 from typing import Callable, Iterator, List, Tuple
 
 import numpy as np
 
-from ..errors import DataError  # noqa: F401  (re-exported)
+from ..errors import (
+    DataError,  # noqa: F401  (re-exported)
+    DataWarning,
+)
+
+# set by ``to_gray_u8`` when it converts a colour frame (what it had), read by ``Sequence.__iter__``
+# around each frame's decoding to note the conversion once (a context variable: safe in threads)
+_COLOUR: contextvars.ContextVar = contextvars.ContextVar("torch_frontend_colour_frame", default=None)
 
 _PNG_SIG = b"\x89PNG\r\n\x1a\n"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff")
@@ -83,13 +93,30 @@ class Sequence:
         self.skipped = []
         for item in self._items():
             try:
-                img = item.load()
+                img = self._load(item)
             except DataError as exc:
                 if not self.skip_bad:
                     raise
                 self.skipped.append((item.source, str(exc)))
                 continue
             yield Frame(item.index, item.stamp_ns, img, item.source)
+
+    def _load(self, item: _Item) -> np.ndarray:
+        """``item.load()``, noting once per sequence (a ``DataWarning``) that colour frames are
+        converted to grey. Every reader of the frames decodes through here (``pipelines.prefetch``
+        too)."""
+        token = _COLOUR.set(None)
+        try:
+            img = item.load()
+            colour = _COLOUR.get()
+        finally:
+            _COLOUR.reset(token)
+        if colour is not None and not getattr(self, "_colour_noted", False):
+            self._colour_noted = True
+            warnings.warn(f"{self.kind} {self.name}: colour frames ({colour}; the first: {item.source}) are "
+                          f"converted to grey (cv2.cvtColor, as VINS's cv_bridge mono8); the tracker works on "
+                          f"grey images", DataWarning, stacklevel=3)
+        return img
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, {len(self)} frames)"
@@ -132,6 +159,7 @@ def to_gray_u8(img: np.ndarray, source: str, bgr: bool = True) -> np.ndarray:
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]
     if a.ndim == 3 and a.shape[2] in (3, 4):
+        _COLOUR.set(f"{a.shape[2]} channels, {'BGR' if bgr else 'RGB'}{'A' if a.shape[2] == 4 else ''}")
         code = {
             (3, True): cv2.COLOR_BGR2GRAY,
             (3, False): cv2.COLOR_RGB2GRAY,

@@ -74,6 +74,7 @@ __all__ = [
     "LoopRun",
     "MIN_POINTS_TO_QUERY",
     "StreamRun",
+    "demo_announcement",
     "demo_config",
     "demo_loop",
     "demo_options",
@@ -680,9 +681,24 @@ DEMO_RENDER = dict(laps=2, keyframes_per_lap=64, frames_per_keyframe=2, width=32
                    yaw_bias_deg=0.15, trans_drift=0.03)
 
 #: the demo's :class:`LoopOptions`: the render moves ~0.13 m and turns ~5.6 deg per rendered
-#: keyframe, so 0.1 m / 5 deg give about one keyframe per rendered keyframe, 64 per lap, and lap 2
-#: lies more than VINS's 50 keyframes after lap 1; the vocabulary is trained on the run
+#: keyframe, so 0.1 m / 5 deg make a keyframe about every rendered keyframe or more often (147
+#: keyframes on the 2 x 64 of the render, measured), and lap 2 lies more than VINS's 50 keyframes
+#: after lap 1; the vocabulary is trained on the run
 DEMO_OPTIONS = dict(train_vocabulary=True, keyframe_distance=0.1, keyframe_angle=5.0, vocabulary_sample=150)
+
+
+def demo_announcement(options: Optional[LoopOptions] = None, **render_kwargs) -> str:
+    """What ``demo --loop`` says it runs, before it renders: laps, frames and size of the render
+    (``DEMO_RENDER`` updated by ``render_kwargs``), and the keyframe rule of ``options`` (the
+    pipeline picks its keyframes itself: their number is in the summary)."""
+    r = {**DEMO_RENDER, **render_kwargs}
+    opt = demo_options() if options is None else options
+    frames = int(r["laps"]) * int(r["keyframes_per_lap"]) * int(r["frames_per_keyframe"])
+    rule = (f"every {opt.keyframe_every} frames" if opt.keyframe_every else
+            f"VINS's rule, every {opt.keyframe_distance:g} m or {opt.keyframe_angle:g} deg")
+    used = f" (the first {opt.max_frames} used)" if opt.max_frames and opt.max_frames < frames else ""
+    return (f"synthetic revisit sequence: {r['laps']} laps, {frames} frames{used} {r['width']}x{r['height']}, "
+            f"drifted VIO poses, ground truth; keyframes by {rule}")
 
 
 def demo_sequence(seed: int = 0, **render_kwargs):

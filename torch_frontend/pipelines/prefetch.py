@@ -80,7 +80,7 @@ def _rows(seqs, worker: int, workers: int, max_rows: Optional[int], tensors: boo
                 continue
             t0 = time.perf_counter()
             try:
-                img = item.load()
+                img = seqs[b]._load(item)  # the reader's decoding, with its colour note
             except DataError as exc:
                 slots.append((_BAD, item.source, str(exc)))
             except Exception as exc:

@@ -18,9 +18,14 @@ from .common import InputOptions, OptionError, progress_bar, resolve_device
 from .inputs import Source, frames_to_read, open_inputs, resolve_config, stream_names
 from .prefetch import FrameStream
 
-__all__ = ["TrackOptions", "run_track", "track_streams", "tracked_batches"]
+__all__ = ["DEMO_FLIGHT", "TrackOptions", "demo_flight_inputs", "run_track", "track_streams", "tracked_batches"]
 
 TRACKER_MODES = ("mono", "fusion")
+
+#: ``demo --flight``: ``testing.flight.synthetic_flight`` (a camera flying over the package photo,
+#: ~2.5 px/frame across, slow rotation and zoom; the view stays on the photo for 32 frames of
+#: 640x400) at 20 Hz, as EuRoC's cameras
+DEMO_FLIGHT = dict(frames=32, size=(400, 640), rate=20.0)
 
 
 @dataclass
@@ -41,6 +46,31 @@ class TrackOptions(InputOptions):
         super().check()
         if self.mode not in TRACKER_MODES:
             raise OptionError("mode", f"mode: expected mono or fusion, got {self.mode!r}")
+
+
+def demo_flight_inputs(frames: int = DEMO_FLIGHT["frames"], size: Tuple[int, int] = DEMO_FLIGHT["size"],
+                       rate: float = DEMO_FLIGHT["rate"]):
+    """The config and source of ``demo --flight``: ``frames`` frames of ``size`` ``(H, W)`` of the
+    synthetic flight at ``rate`` Hz (``DEMO_FLIGHT``), seen by an undistorted pinhole camera
+    (focal 460 px, VINS-Mono's EuRoC front-end settings ``config.EUROC_FRONTEND``).
+
+    Returns:
+        ``(TrackerConfig, [ArraySequence])``, what :func:`run_track` takes.
+    """
+    import numpy as np
+
+    from ..camera import PinholeCamera
+    from ..config import EUROC_FRONTEND, TrackerConfig
+    from ..testing.flight import synthetic_flight
+    from .inputs import ArraySequence
+
+    H, W = (int(x) for x in size)
+    imgs, _ = synthetic_flight(n_frames=int(frames), size=(H, W))
+    cam = PinholeCamera(0.0, 0.0, 0.0, 0.0, 460.0, 460.0, (W - 1) / 2, (H - 1) / 2, width=W, height=H,
+                        camera_name="flight")
+    cfg = TrackerConfig(path="demo (synthetic flight over the package photo)", image_width=W, image_height=H,
+                        camera=cam, **EUROC_FRONTEND)
+    return cfg, [ArraySequence(imgs, np.arange(len(imgs)) / float(rate), name="flight")]
 
 
 def tracked_batches(tracker, stream, device, bar=None) -> Iterator[Tuple[Any, Any, float]]:
