@@ -257,7 +257,12 @@ class FeatureTracker:
         replayed, not issued one by one); ``compile_kwargs`` (``mode``, ``backend``, ``dynamic``,
         ...) override those defaults. Mono compiles one step per variant (track only, every stream,
         a sub-batch of 1, 2, 4, ... publishing streams: ``clock.publish_plan``), each when a step
-        first needs it. The graph is built on the first call (seconds to minutes);
+        first needs it. The graph is built on the first call of each variant: on the CPU
+        backend (inductor) about 4-5 minutes per variant on a loaded 2-core machine (three
+        variants for a mono run: the first frame, track only, publish). Inductor fuses and
+        reorders float reductions, so a compiled step's values may differ from the eager step's
+        in the last bits (measured: identical for the first three EuRoC sample frames, then
+        drifting); the eager capturable step is the one pinned bit for bit to the CPU path;
         with ``fallback`` (default) a step that fails to compile warns once and runs eager from then
         on, so a tracker never stops because of the compiler. The outputs of a CUDA-graph replay
         live in the graph's memory pool: the step clones the new state and frame out of it, so
