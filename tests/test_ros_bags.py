@@ -221,3 +221,38 @@ def test_compare(tmp_path, in_bag, capsys):
     r2 = run_compare(a / "features.bag", tmp_path / "c", tmp_path / "cmp2")
     assert 0 < r2["agreement"] < 1.0
     assert r2["tracks_matched"] < r2["tracks_reference"]
+
+
+def test_euroc_imu_and_cli_flags(tmp_path, capsys):
+    from ._helpers import make_asl
+
+    root = make_asl(tmp_path / "seq", n=6, small=True)
+    imu = root / "mav0" / "imu0"
+    imu.mkdir()
+    rows = [(1403715273262142976 + k * 5_000_000, 0.1 * k, -0.2, 0.3, 9.8, 0.01 * k, -0.5) for k in range(7)]
+    (imu / "data.csv").write_text("#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z\n"
+                                  + "".join(",".join(str(v) for v in r) + "\n" for r in rows))
+    out = tmp_path / "out"
+    rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", root, "--out", out, "--no-progress",
+                         "--no-tracks", "--write-bag", "f_db3")
+    assert rc == 0, err
+    msgs = _messages(out / "f_db3", IMU_TOPIC)
+    assert [m[0] for m in msgs] == ["sensor_msgs/msg/Imu"] * 7
+    got = [(m[1], m[3].angular_velocity.x, m[3].linear_acceleration.y, m[3].orientation_covariance[0]) for m in msgs]
+    assert got == [(r[0], r[1], r[5], -1.0) for r in rows]
+    rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", root, "--out", tmp_path / "o2",
+                         "--write-bag", "sub/f.bag")
+    assert rc == 2 and "--write-bag" in err and "sub/f.bag" in err and not (tmp_path / "o2").exists()
+
+
+def test_failed_run_leaves_no_bag(tmp_path):
+    """The bags are part of the atomic output set: a run that fails leaves ``out`` as it was."""
+    from torch_frontend.outputs import RunRecorder
+
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="boom"):
+        with RunRecorder(out, ["a", "b"], write_tracks=False, bag="features.bag") as rec:
+            assert sorted(p.name for p in rec._stage.path.iterdir()) == ["features_stream0.bag",
+                                                                          "features_stream1.bag"]
+            raise RuntimeError("boom")
+    assert list(out.iterdir()) == [] and sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -247,26 +247,35 @@ class FeatureBagWriter:
     def write_euroc_imu(self, csv: PathLike, topic: str = "/imu0", frame_id: str = "imu4") -> int:
         """``sensor_msgs/Imu`` messages from a EuRoC ``imu0/data.csv`` (``timestamp [ns], w_x, w_y, w_z
         [rad/s], a_x, a_y, a_z [m/s^2]``); returns how many."""
+        stamps, rows = [], []
         try:
-            a = np.loadtxt(csv, delimiter=",", comments="#", ndmin=2)
-        except (OSError, ValueError) as exc:
-            raise DataError(f"{csv}: cannot read the IMU file: {exc}") from None
-        if a.size and a.shape[1] < 7:
-            raise DataError(f"{csv}: expected 7 columns (timestamp, w_x, w_y, w_z, a_x, a_y, a_z), got {a.shape[1]}")
+            lines = Path(csv).read_text(encoding="utf-8").splitlines()
+        except OSError as exc:
+            raise DataError(f"{csv}: cannot read the IMU file: {exc.strerror or exc}") from None
+        for k, line in enumerate(lines, 1):
+            if not line.strip() or line.lstrip().startswith("#"):
+                continue
+            f = line.split(",")
+            try:
+                if len(f) < 7:
+                    raise ValueError(f"{len(f)} columns")
+                stamps.append(int(f[0]))  # ns exact (a float64 would round them)
+                rows.append([float(v) for v in f[1:7]])
+            except ValueError as exc:
+                raise DataError(f"{csv}:{k}: expected timestamp [ns], w_x, w_y, w_z, a_x, a_y, a_z: {exc}") from None
         T = self.ts.types
         V, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
         if topic not in self._conns:
             self._conns[topic] = self._w.add_connection(topic, IMU, typestore=self.ts)
-        stamps = np.loadtxt(csv, delimiter=",", comments="#", ndmin=2, usecols=0, dtype=np.int64) if a.size else []
         cov0 = np.zeros(9)
         cov_none = np.array([-1.0] + [0.0] * 8)
-        for s, row in zip(np.atleast_1d(stamps), a):
-            msg = T[IMU](header=self._header(topic, int(s), frame_id), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
-                         orientation_covariance=cov_none, angular_velocity=V(x=row[1], y=row[2], z=row[3]),
-                         angular_velocity_covariance=cov0, linear_acceleration=V(x=row[4], y=row[5], z=row[6]),
+        for s, row in zip(stamps, rows):
+            msg = T[IMU](header=self._header(topic, s, frame_id), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+                         orientation_covariance=cov_none, angular_velocity=V(x=row[0], y=row[1], z=row[2]),
+                         angular_velocity_covariance=cov0, linear_acceleration=V(x=row[3], y=row[4], z=row[5]),
                          linear_acceleration_covariance=cov0)
-            self._write(topic, int(s), msg, IMU)
-        return len(a)
+            self._write(topic, s, msg, IMU)
+        return len(rows)
 
     # -- closing
     def close(self) -> None:
