@@ -65,7 +65,7 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
                 "camera": "--camera", "workers": "--workers"}
-_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode"}
+_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
 _LOOP_FLAGS = {
     **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
@@ -251,7 +251,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
     sources = args.sources or []
     _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
-    opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks)
+    opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
+                       bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
+                       bag_imu=not args.no_bag_imu)
     config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
@@ -342,6 +344,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args))
     print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from .pipelines.compare import CompareOptions, format_compare, run_compare
+
+    opt = CompareOptions(tolerance=args.tolerance, stream=args.stream, num_cameras=args.num_cameras)
+    print(format_compare(run_compare(args.reference, args.run, args.out, opt)))
     return 0
 
 
@@ -484,6 +494,15 @@ def _add_track(sub) -> None:
                             "sensor.yaml then gives the camera")
     _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
+    rb = track.add_argument_group("ROS bag output (docs/ros.md)")
+    rb.add_argument("--write-bag", default=None, metavar="NAME",
+                    help="also write VINS's feature_tracker topics into --out/NAME (NAME.bag: ROS 1, else a "
+                         "ROS 2 folder; one per stream: NAME_stream<b>)")
+    rb.add_argument("--bag-format", choices=("ros1", "ros2"), default=None,
+                    help="bag format, instead of the name's form")
+    rb.add_argument("--bag-images", action="store_true", help="add /feature_tracker/feature_img")
+    rb.add_argument("--no-bag-imu", action="store_true",
+                    help="do not copy the input's IMU (the config's imu_topic; EuRoC imu0/data.csv) into the bag")
     track.set_defaults(func=_cmd_track, flags=_TRACK_FLAGS)
 
 
@@ -575,6 +594,31 @@ def _add_loop(sub) -> None:
     loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
 
+def _add_compare(sub) -> None:
+    """``compare``: a reference feature bag against a run."""
+    cmp_ = sub.add_parser(
+        "compare",
+        help="compare a feature bag (e.g. recorded from VINS's feature_tracker_node) with a run",
+        description="Per-frame agreement of RUN with the feature bag REFERENCE: frames matched by stamp, "
+                    "tracks by first position, a feature agrees when the same track is within --tolerance "
+                    "pixels. Writes compare.json, compare.txt and compare.png into --out (docs/ros.md).",
+        epilog="example: torch-frontend compare features_vins.bag out/run --out out/compare",
+    )
+    cmp_.add_argument("reference", type=Path, metavar="REFERENCE", help="feature bag (.bag or ROS 2 folder)")
+    cmp_.add_argument("run", type=Path, metavar="RUN",
+                      help="a 'track' output folder (its feature bag, else features.npz) or a feature bag")
+    cmp_.add_argument("--out", type=Path, default=Path("out/compare"), metavar="DIR",
+                      help="report folder (default: out/compare)")
+    cmp_.add_argument("--tolerance", type=_positive_float, default=0.1, metavar="PX",
+                      help="pixels within which features agree (default: 0.1)")
+    cmp_.add_argument("--stream", type=_non_negative_int, default=0, metavar="B",
+                      help="stream of a multi-stream RUN (default: 0)")
+    cmp_.add_argument("--num-cameras", type=int, choices=(1, 2), default=1,
+                      help="id channel encoding: id * N + camera (default: 1, mono)")
+    cmp_.set_defaults(func=_cmd_compare, flags={"tolerance": "--tolerance", "stream": "--stream",
+                                                "num_cameras": "--num-cameras"})
+
+
 def _add_vocabulary(sub) -> None:
     """``vocabulary train``."""
     vocab = sub.add_parser(
@@ -618,7 +662,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary):
+    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare):
         add(sub)
     return parser
 

@@ -42,6 +42,7 @@ Outputs in ``out``:
       that follow the motion for a moving one.
     * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream
       (``stamp_ns`` zero-padded to 19 digits, so the names sort in time order).
+    * with ``bag``: the feature bag(s) (``features.bag`` / a ROS 2 folder; ``io.feature_bag``).
     * ``written-by-torch-frontend.json``: the marker (``_atomic.MARKER``).
 """
 
@@ -104,6 +105,49 @@ def run_counts(streams: int, frames: int, published: int, published_features: in
     }
 
 
+def bag_names(name: str, streams: int, fmt: str | None = None) -> List[str]:
+    """The feature bags of a run of ``streams`` streams in ``out``: ``name`` itself for one stream,
+    else ``<stem>_stream<b><suffix>`` (``features.bag`` -> ``features_stream0.bag``, a ROS 2 folder
+    ``features_db3`` -> ``features_db3_stream0``). ``name`` must be a plain name (no folder); a
+    ROS 1 bag (``fmt="ros1"``) gets the ``.bag`` its readers need."""
+    p = Path(str(name).rstrip("/"))
+    if fmt == "ros1" and p.suffix != ".bag":
+        p = Path(p.name + ".bag")
+    if p.name != str(p) or p.name in ("", ".", ".."):
+        raise ValueError(f"bag: expected a name inside the output folder (no '/'), got {name!r}")
+    if p.name in OUTPUT_FILES or p.name == "tracks":
+        raise ValueError(f"bag: {name!r} is the name of another output")
+    if streams == 1:
+        return [p.name]
+    return [f"{p.stem}_stream{b}{p.suffix}" for b in range(streams)]
+
+
+def feature_message(frame, b: int, stamp_ns: int):
+    """Stream b of a ``FeatureFrame`` as an ``io.feature_bag.FeatureMessage``: the published
+    features (``frame.valid``) in slot order (VINS-Mono's array order); with right observations
+    (VINS-Fusion stereo) ordered by id, camera 0 before camera 1."""
+    from .io.feature_bag import FeatureMessage
+
+    sel = np.flatnonzero(frame.valid[b].cpu().numpy())
+    ids = frame.ids[b].cpu().numpy()[sel].astype(np.int64)
+
+    def rows(t):
+        return t[b].detach().cpu().double().numpy()[sel]
+
+    xy, uv, vel = rows(frame.xy), rows(frame.uv), rows(frame.velocity)
+    cam = np.zeros(len(sel), dtype=np.int64)
+    if frame.right_valid is not None:
+        rv = frame.right_valid[b].cpu().numpy()[sel].astype(bool)
+        ids = np.concatenate([ids, ids[rv]])
+        cam = np.concatenate([cam, np.ones(int(rv.sum()), dtype=np.int64)])
+        xy = np.concatenate([xy, rows(frame.right_xy)[rv]])
+        uv = np.concatenate([uv, rows(frame.right_uv)[rv]])
+        vel = np.concatenate([vel, rows(frame.right_velocity)[rv]])
+        order = np.lexsort((cam, ids))
+        ids, cam, xy, uv, vel = ids[order], cam[order], xy[order], uv[order], vel[order]
+    return FeatureMessage(stamp_ns=int(stamp_ns), ids=ids, camera=cam, xy=xy, uv=uv, velocity=vel)
+
+
 class RunRecorder:
     """Collect per-step results of B streams and write the outputs of a run.
 
@@ -111,6 +155,10 @@ class RunRecorder:
         out: output folder (created; see the module docstring for what it may already hold).
         stream_names: one name per stream (for the summary and plots).
         write_tracks: draw and save track images (``tracks/``).
+        bag: write the feature tracker's topics into this bag inside ``out`` (one per stream,
+            :func:`bag_names`; ``io.feature_bag``, ``docs/ros.md``), part of the output set.
+        bag_format: ``"ros1"`` or ``"ros2"`` (default: ``.bag`` names ROS 1, others ROS 2).
+        bag_images: add ``/feature_tracker/feature_img`` to the bags.
 
     Raises:
         OutputFolderError: ``out`` holds files the library did not write (nothing is touched).
@@ -119,7 +167,8 @@ class RunRecorder:
     Use as a context manager: leaving it with an exception removes the temporary folder.
     """
 
-    def __init__(self, out, stream_names: Sequence[str], write_tracks: bool = True):
+    def __init__(self, out, stream_names: Sequence[str], write_tracks: bool = True, bag: str | None = None,
+                 bag_format: str | None = None, bag_images: bool = False):
         self.out = Path(out)
         self.names = list(stream_names)
         self.B = len(self.names)
@@ -140,6 +189,18 @@ class RunRecorder:
         if self.write_tracks:
             self._tmp_tracks = self._stage.path / "tracks"
             self._tmp_tracks.mkdir()
+        self.bag_names = bag_names(bag, self.B, bag_format) if bag else []
+        self._bags: List[Any] = []
+        self.bag_images = bool(bag_images)
+        if self.bag_names:
+            from .io.feature_bag import FeatureBagWriter
+
+            try:
+                for name in self.bag_names:
+                    self._bags.append(FeatureBagWriter(self._stage.path / name, bag_format, images=bag_images))
+            except BaseException:
+                self.abort()
+                raise
 
     # -- context manager: clean temporaries on failure
     def __enter__(self) -> RunRecorder:
@@ -152,6 +213,9 @@ class RunRecorder:
 
     def abort(self) -> None:
         """Remove the temporary folder (``out`` is not touched)."""
+        for w in self._bags:
+            w.abort()
+        self._bags = []
         if self._stage is not None:
             self._stage.abort()
         self._stage = None
@@ -191,6 +255,8 @@ class RunRecorder:
                 "vx": vel[vb, vk, 0], "vy": vel[vb, vk, 1],
                 "track_count": cnt[vb, vk].astype(np.int64),
             })
+        if self._bags:
+            self._add_to_bags(batch, frame, alive, published, stamps)
         if self.write_tracks and self._tmp_tracks is not None:
             import cv2
 
@@ -204,6 +270,35 @@ class RunRecorder:
                 if not cv2.imwrite(str(d / f"{int(stamps[b]):019d}.png"), img):
                     raise OSError(f"cannot write track image into {d}")
                 self.track_images += 1
+
+    def _add_to_bags(self, batch, frame, alive, published, stamps) -> None:
+        """The feature tracker's topics of this step, stream b into bag b (``io.feature_bag``)."""
+        restarted = frame.restarted.cpu().numpy().astype(bool)
+        sent = frame.sent.cpu().numpy().astype(bool)
+        for b in np.flatnonzero(alive):
+            w = self._bags[b]
+            if restarted[b]:
+                w.write_restart(int(stamps[b]))
+            if sent[b]:
+                w.write_features(feature_message(frame, int(b), int(stamps[b])))
+            if self.bag_images and published[b]:
+                from .viz import draw_tracks
+
+                w.write_image(int(stamps[b]), draw_tracks(batch.raw[b], frame, int(b)))
+
+    def copy_imu(self, b: int, kind: str, path, topic: str) -> int:
+        """Copy the IMU of stream b's input into its bag: a bag's ``topic`` as recorded, or a EuRoC
+        folder's ``mav0/imu0/data.csv`` as ``sensor_msgs/Imu`` on ``topic``; returns the message
+        count (0: no bag, or no IMU in the input)."""
+        if not self._bags:
+            return 0
+        w = self._bags[b]
+        if kind == "bag":
+            return w.copy_topic(path, topic)
+        if kind == "euroc":
+            csv = Path(path) / "mav0" / "imu0" / "data.csv"
+            return w.write_euroc_imu(csv, topic) if csv.is_file() else 0
+        return 0
 
     # -- results
     def columns(self) -> Dict[str, np.ndarray]:
@@ -262,13 +357,16 @@ class RunRecorder:
         if self._stage is None:
             raise RuntimeError(f"{self.out}: the outputs of this RunRecorder were written or aborted already")
         try:
-            names = self._write_set(self._stage.path, summary, plots)
+            for w in self._bags:
+                w.close()
+            names = self._write_set(self._stage.path, summary, plots) + list(self.bag_names)
             self._stage.commit()
         except BaseException:
             self.abort()
             raise
         self._stage = None
         self._tmp_tracks = None
+        self._bags = []
         return [self.out / n for n in names]
 
     def _write_set(self, d: Path, summary: Dict[str, Any], plots: bool) -> List[str]:
@@ -395,5 +493,5 @@ class RunRecorder:
         return name
 
 
-__all__ = ["RunRecorder", "CSV_COLUMNS", "OUTPUT_FILES", "LEGACY_OUTPUTS", "OutputFolderError", "atomic_path",
+__all__ = ["RunRecorder", "bag_names", "feature_message", "CSV_COLUMNS", "OUTPUT_FILES", "LEGACY_OUTPUTS", "OutputFolderError", "atomic_path",
            "write_text_atomic", "write_bytes_atomic", "replace_dir"]

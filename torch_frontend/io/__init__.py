@@ -9,6 +9,7 @@ this package; their public names are also reachable here (``torch_frontend.io.re
 
 from .._lazy import lazy_exports
 from .euroc import EurocSequence, euroc_config
+from .feature_bag import FeatureBag, FeatureBagWriter, FeatureMessage, read_feature_bag
 from .folder import ImageFolderSequence
 from .frames import DataError, Frame, Sequence, decode_image, read_image
 from .rosbag import RosbagSequence, list_image_topics
@@ -40,6 +41,10 @@ __all__ = [*_TRAJECTORY,
     "ImageFolderSequence",
     "RosbagSequence",
     "list_image_topics",
+    "FeatureBag",
+    "FeatureBagWriter",
+    "FeatureMessage",
+    "read_feature_bag",
     "camera_from_sensor_yaml",
     "config_from_sensor_yaml",
     "euroc_config",

@@ -18,7 +18,8 @@ from .common import InputOptions, OptionError, progress_bar, resolve_device
 from .inputs import Source, frames_to_read, open_inputs, resolve_config, stream_names
 from .prefetch import FrameStream
 
-__all__ = ["DEMO_FLIGHT", "TrackOptions", "demo_flight_inputs", "run_track", "track_streams", "tracked_batches"]
+__all__ = ["DEMO_FLIGHT", "TrackOptions", "copy_imu", "demo_flight_inputs", "run_track", "track_streams",
+           "tracked_batches"]
 
 TRACKER_MODES = ("mono", "fusion")
 
@@ -36,16 +37,52 @@ class TrackOptions(InputOptions):
         mode: the tracker's rules: ``"mono"`` (VINS-Mono feature_tracker) or ``"fusion"``
             (VINS-Fusion).
         write_tracks: draw the tracks of every published frame into ``tracks/``.
+        bag: also write the feature tracker's ROS topics into this bag, a name inside ``out``
+            (``features.bag``: ROS 1, ``features_db3``: ROS 2; one per stream, ``outputs.bag_names``;
+            ``docs/ros.md``). None: no bag.
+        bag_format: ``"ros1"`` / ``"ros2"``, overriding the name's form.
+        bag_images: add ``/feature_tracker/feature_img``.
+        bag_imu: copy each input's IMU into its bag (a bag's ``imu_topic``, a EuRoC ``imu0/data.csv``).
     """
 
     mode: str = "mono"
     write_tracks: bool = True
+    bag: str | None = None
+    bag_format: str | None = None
+    bag_images: bool = False
+    bag_imu: bool = True
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
         super().check()
         if self.mode not in TRACKER_MODES:
             raise OptionError("mode", f"mode: expected mono or fusion, got {self.mode!r}")
+        if self.bag_format not in (None, "ros1", "ros2"):
+            raise OptionError("bag_format", f"bag_format: expected ros1 or ros2, got {self.bag_format!r}")
+        if self.bag is not None:
+            from ..outputs import bag_names
+
+            try:
+                bag_names(self.bag, 1)
+            except ValueError as exc:
+                raise OptionError("bag", str(exc)) from None
+
+    def recorder_options(self) -> Dict[str, Any]:
+        """The bag arguments of ``outputs.RunRecorder``."""
+        return {"bag": self.bag, "bag_format": self.bag_format, "bag_images": self.bag_images}
+
+
+def copy_imu(rec, cfg, sources, seqs, opt: TrackOptions, streams=None) -> None:
+    """Copy the IMU of each input into the recorder's bags (``TrackOptions.bag_imu``); ``streams``:
+    the inputs of the recorder's streams (default: all, in order)."""
+    if opt.bag is None or not opt.bag_imu:
+        return
+    topic = cfg.imu_topic or "/imu0"
+    for b, i in enumerate(range(len(sources)) if streams is None else streams):
+        src = sources[i]
+        kind, path = src if isinstance(src, tuple) else (getattr(seqs[i], "kind", ""), getattr(seqs[i], "path", None))
+        if path is not None:
+            rec.copy_imu(b, kind, path, topic)
 
 
 def demo_flight_inputs(frames: int = DEMO_FLIGHT["frames"], size: Tuple[int, int] = DEMO_FLIGHT["size"],
@@ -126,7 +163,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
     steps = 0
     tracker_seconds = 0.0
-    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks) as rec:
+    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options()) as rec:
         t0 = time.perf_counter()
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
             for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
@@ -149,6 +186,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
             "out": str(Path(out)),
         }
         summary = rec.summary(seconds, stream.skipped, extra=extra)
+        copy_imu(rec, cfg, sources, seqs, opt)
         rec.write(summary)
     return summary
 
@@ -240,11 +278,13 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
             **(extra or {}),
         }
         summary = rec.summary(seconds, skipped, extra=info)
+        copy_imu(rec, cfg, sources, seqs, opt, streams=[b])
         rec.write(summary)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
 
     with contextlib.ExitStack() as stack:
-        recs = [stack.enter_context(RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks)) for b in range(B)]
+        recs = [stack.enter_context(RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks,
+                                                    **opt.recorder_options())) for b in range(B)]
         started = [False] * B
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
             for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
