@@ -74,14 +74,17 @@ def test_python_blocks_run(page, monkeypatch):
     (against the sample data in the package)."""
     monkeypatch.chdir(REPO)
     namespace: dict = {"__name__": "__docs__"}
-    ran = 0
+    ran = marked = 0
     for lang, code, line, reason in _blocks(page):
-        if lang != "python" or reason is not None:
+        if lang != "python":
+            continue
+        if reason is not None:
+            marked += 1
             continue
         # line numbers of tracebacks point into the page
         exec(compile("\n" * line + code, str(page), "exec"), namespace)
         ran += 1
-    assert ran >= 1
+    assert ran >= 1 or marked  # a page whose every python block says why it is not run
     if page == README:
         assert namespace["x"].grad is not None and namespace["x"].grad.abs().sum() > 0
         assert int(namespace["frame"].present.sum()) > 100  # features tracked through the sample
