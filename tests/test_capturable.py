@@ -201,6 +201,7 @@ def _explain(B=1):
     return torch._dynamo.explain(fn)(tr.state, img_v, t, act)
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_capturable_step_is_one_graph():
     ex = _explain()
     reasons = "; ".join(str(b.reason)[:200] for b in ex.break_reasons[:5])

@@ -283,6 +283,7 @@ def test_save_replaces_its_own_folders_and_legacy_ones(scene, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g"]
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_six_dof_mode(scene):
     seq = render_loop_sequence(laps=2, keyframes_per_lap=KF_PER_LAP, seed=1, drift="6dof", width=256, height=192)
     kfs = make_keyframes(seq)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from torch_frontend.loop.database import PlaceDatabase
@@ -124,6 +125,7 @@ def _overlap(others, pose):
     return np.clip(VIEW_W - dx, 0, None) * np.clip(VIEW_H - dy, 0, None) / (VIEW_W * VIEW_H)
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_revisit_loop_detection_precision():
     world = _world()
     poses = np.concatenate([_poses(0), _poses(1)])

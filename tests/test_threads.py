@@ -16,6 +16,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 import torch
 
 from torch_frontend import _tuning
@@ -94,6 +95,7 @@ def _assert_caches_intact():
         assert np.array_equal(raw.vals, _raw_reference(state, raw.vals.size)), state
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_find_fundamental_from_threads_same_seed():
     """4 threads solve the same 32 problems with the same seed from cold caches (all growing the
     same sample tables at once), twice: every mask equals the single-threaded one and cv2's, the

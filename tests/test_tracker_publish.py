@@ -203,6 +203,7 @@ def _mixed_streams(frames, n):
     return out
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_mixed_phase_batch_equals_per_stream_runs():
     """A batch whose streams publish at different steps runs the publish stages on sub-batches
     (1, 2 or 4 lanes) and gives each stream the bits of a tracker of its own (and, for the frames,
@@ -230,6 +231,7 @@ def test_mixed_phase_batch_equals_per_stream_runs():
     assert {"sub1", "sub2", "track"} <= names, names
 
 
+@pytest.mark.slow  # slow, and CI (make test-all) runs it: keeps make test within ~5 min
 def test_sub_batch_variants_share_one_kernel_count():
     """The sub-batch variant is shape-static: the same kernels for 1, 2 and 4 lanes (only the
     bytes of the publish stages scale with the lanes), no sync; every lane count gives the same bits."""
