@@ -59,21 +59,26 @@ def small_config(tmp_path: Path, max_cnt: int = 60) -> Path:
     return p
 
 
-def write_bag(path: Path, frames, version: int = 1, topic: str = TOPIC, encoding: str = "mono8",
-              compressed: bool = False) -> Path:
-    """A ROS 1 (``version=1``, ``path`` ending in .bag) or ROS 2 bag of ``[(stamp_ns, gray image)]``."""
+def bag_writer(path: Path, version: int = 1):
+    """``(typestore, writer, serialize)`` of a new ROS 1 (``version=1``, ``path`` ending in .bag) or
+    ROS 2 bag, with rosbags' own writer (the tests' inputs are not written by the package)."""
     from rosbags.typesys import Stores, get_typestore
 
     if version == 1:
         from rosbags.rosbag1 import Writer
 
         ts = get_typestore(Stores.ROS1_NOETIC)
-        writer, ser = Writer(path), ts.serialize_ros1
-    else:
-        from rosbags.rosbag2 import Writer
+        return ts, Writer(path), ts.serialize_ros1
+    from rosbags.rosbag2 import Writer
 
-        ts = get_typestore(Stores.ROS2_HUMBLE)
-        writer, ser = Writer(path, version=9), ts.serialize_cdr
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    return ts, Writer(path, version=9), ts.serialize_cdr
+
+
+def write_bag(path: Path, frames, version: int = 1, topic: str = TOPIC, encoding: str = "mono8",
+              compressed: bool = False) -> Path:
+    """A ROS 1 (``version=1``, ``path`` ending in .bag) or ROS 2 bag of ``[(stamp_ns, gray image)]``."""
+    ts, writer, ser = bag_writer(path, version)
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
     msgtype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"

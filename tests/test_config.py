@@ -157,13 +157,21 @@ def test_size_mismatch_warns(tmp_path):
     assert cfg.camera is not None
 
 
-def test_every_vins_config_loads():
-    """Every YAML shipped with VINS-Mono and VINS-Fusion (../shared/data/vins_configs) loads."""
+def _vins_config_files(what: str):
+    """Every YAML shipped with VINS-Mono and VINS-Fusion (../shared/data/vins_configs), at least 50;
+    skips ``what`` with the reason when ../shared is not beside the repo."""
     root = SHARED_DATA / "vins_configs"
     if not root.exists():
-        pytest.skip(f"../shared/data/vins_configs not found beside the repo ({root}); skipping the VINS-config sweep")
+        pytest.skip(f"../shared/data/vins_configs not found beside the repo ({root}); skipping {what}")
     files = sorted(root.rglob("*.yaml"))
     assert len(files) >= 50
+    return files
+
+
+def test_every_vins_config_loads():
+    """Every YAML shipped with VINS-Mono and VINS-Fusion (../shared/data/vins_configs) loads."""
+    files = _vins_config_files("the VINS-config sweep")
+    root = SHARED_DATA / "vins_configs"
     n_cfg = n_cam = 0
     for f in files:
         raw = read_opencv_yaml(f)
@@ -321,11 +329,7 @@ def test_shipped_configs_load_without_key_warnings():
 
 def test_vins_configs_load_without_key_warnings():
     """The estimator and pose-graph keys of VINS's own configs are known keys (ignored silently)."""
-    root = SHARED_DATA / "vins_configs"
-    if not root.exists():
-        pytest.skip(f"../shared/data/vins_configs not found beside the repo ({root}); skipping the key sweep")
-    files = sorted(root.rglob("*.yaml"))
-    assert len(files) >= 50
+    files = _vins_config_files("the key sweep")
     assert _config_warnings(files) == []
 
 

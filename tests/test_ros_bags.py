@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from ._helpers import crop, run_cli, small_config
+from ._helpers import bag_writer, crop, run_cli, small_config
 from .conftest import load_gray, sample_frames
 
 pytest.importorskip("rosbags")
@@ -28,18 +28,7 @@ def _stamps():
 
 def _input_bag(path, version=1):
     """Cropped sample frames on /cam0/image_raw and 5 sensor_msgs/Imu messages per frame on /imu0."""
-    from rosbags.typesys import Stores, get_typestore
-
-    if version == 1:
-        from rosbags.rosbag1 import Writer
-
-        ts = get_typestore(Stores.ROS1_NOETIC)
-        w, ser = Writer(path), ts.serialize_ros1
-    else:
-        from rosbags.rosbag2 import Writer
-
-        ts = get_typestore(Stores.ROS2_HUMBLE)
-        w, ser = Writer(path, version=9), ts.serialize_cdr
+    ts, w, ser = bag_writer(path, version)
     T = ts.types
     seq = {"seq": 0} if version == 1 else {}
 
