@@ -11,6 +11,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Optional, Union
 
@@ -94,7 +95,11 @@ class TrackerModule(nn.Module):
     The camera models are sub-modules (``module.camera``, ``module.camera1`` for stereo), so
     ``state_dict()``, ``parameters()`` and ``.to(device)`` see them; they stay float64 (camodocal's
     double precision) whatever ``.float()`` / ``.half()`` asks. Make a new ``initial_state()``
-    after moving the module.
+    after moving the module. Per-stream cameras: a ``camera.CameraBatch`` of B cameras (the
+    tracker's own when its streams have different calibrations, or set with :meth:`use_camera`)
+    is registered the same way: ``state_dict()`` holds every stream's parameters, ``camera.fx``
+    ``(B,)`` (mixed models: ``camera.groups.<model>.fx``, ``CameraBatch`` docstring), and stream
+    b's outputs get gradients through its own rows only.
     """
 
     def __init__(self, config, num_streams: int = 1, *, mode: str = "mono", dtype: torch.dtype = torch.float32,
@@ -116,6 +121,23 @@ class TrackerModule(nn.Module):
         t.device = device
         t.params = t.params.to(device)
         return self
+
+    def use_camera(self, camera, camera1=None) -> None:
+        """Track with ``camera`` (and, fusion stereo, ``camera1``; None keeps the current one): a
+        single ``CameraModel`` or a ``camera.CameraBatch`` of ``num_streams`` per-stream cameras
+        (e.g. ``CameraBatch.repeat(module.camera, B)`` to learn each stream's intrinsics). It is
+        moved to the module's device as float64 (in place, as ``nn.Module.to``) and registered as
+        the module's ``camera`` (``state_dict``, ``parameters``). ``ValueError`` when a batch's
+        stream count is not the tracker's."""
+        t = self.tracker
+        for name, cam in (("camera", camera), ("camera1", camera1)):
+            n = getattr(cam, "num_streams", None)
+            if n is not None and n != t.B:
+                raise ValueError(f"{name}: a camera batch of {n} streams for a tracker of {t.B} streams")
+        camera = camera.to(device=t.device, dtype=torch.float64)
+        camera1 = t.params.camera1 if camera1 is None else camera1.to(device=t.device, dtype=torch.float64)
+        t.params = dataclasses.replace(t.params, camera=camera, camera1=camera1)  # checks the values
+        self.camera, self.camera1 = camera, camera1
 
     @property
     def num_streams(self) -> int:
