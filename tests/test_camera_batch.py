@@ -31,7 +31,7 @@ from torch_frontend.testing.dispatch_count import OpCounter
 from torch_frontend.tracker import FeatureTracker
 
 from ._helpers import crop, small_config
-from .conftest import DEVICES, DTYPES, load_gray, sample_frames
+from .conftest import DEVICES, DTYPES, REPO, load_gray, sample_frames
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -367,6 +367,45 @@ def test_tracker_with_a_camera_batch_equals_one_stream_trackers(tmp_path, captur
     uv = torch.tensor([[[100.0, 80.0]]], dtype=torch.float64).expand(3, 1, 2)
     xy = tr.params.camera.undistort(uv)
     assert not torch.equal(xy[0], xy[1])
+
+
+def _scaled_mei(cam, s):
+    return MeiCamera.from_params({**cam.params_dict(), "gamma1": cam.params_dict()["gamma1"] * s},
+                                 width=cam.width, height=cam.height, camera_name=cam.camera_name)
+
+
+@pytest.mark.parametrize("capturable", [False, pytest.param(True, marks=pytest.mark.slow)],  # ~18 s on a CPU
+                         ids=["default", "capturable"])
+def test_fusion_stereo_with_camera_batches_equals_one_stream_trackers(capturable):
+    """Fusion stereo (MEI cam0 + cam1), 2 streams, ``camera`` and ``camera1`` both batches with
+    per-stream gamma1: stream b = a one-stream tracker with cameras b, every field (fusion tracks
+    each image at its own size: 192 x 256 crops keep the test quick)."""
+    cfg = tf.load_config(REPO / "configs" / "euroc_stereo_mei.yaml")
+    scales = (1.0, 1.03)
+    c0 = [_scaled_mei(cfg.camera, s) for s in scales]
+    c1 = [_scaled_mei(cfg.camera1, 1.0 / s) for s in scales]
+    # capturable: a small LK budget (the same for every tracker: equality holds whatever it is) keeps
+    # the CPU run short (the stereo LK runs every lane every iteration)
+    kw = dict(mode="fusion", capturable=capturable, lk_iter_budget=8 if capturable else None)
+    tr = FeatureTracker(cfg, 2, **kw)
+    tr.params = dataclasses.replace(tr.params, camera=CameraBatch.from_cameras(c0), camera1=CameraBatch.from_cameras(c1))
+    singles = [FeatureTracker(dataclasses.replace(cfg, camera=a, camera1=b), 1, **kw) for a, b in zip(c0, c1)]
+    left = [crop(load_gray(f)) for f in sample_frames("cam0")]
+    right = [crop(load_gray(f)) for f in sample_frames("cam1")]
+    n_right = 0
+    for k in range(4):
+        idx = [k, k + 2]
+        li = torch.from_numpy(np.stack([left[i] for i in idx]))[:, None]
+        ri = torch.from_numpy(np.stack([right[i] for i in idx]))[:, None]
+        t = [1403715273.0 + 0.05 * k] * 2
+        fb = _frame_fields(tr.track(li, t, right=ri))
+        n_right += int(fb["right_valid"].sum())
+        for b, single in enumerate(singles):
+            fs = _frame_fields(single.track(li[b:b + 1], t[b:b + 1], right=ri[b:b + 1]))
+            assert fs.keys() == fb.keys()
+            for name, ref in fs.items():
+                assert torch.equal(fb[name][b:b + 1], ref), f"step {k}, stream {b}: {name} differs"
+    assert n_right > 20
 
 
 # ---------------------------------------------------------------------------------------------
