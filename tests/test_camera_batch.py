@@ -213,7 +213,7 @@ def test_to_moves_and_casts_every_stream(device):
     uv = _pixels(len(MIXED), 8, torch.float32, device)
     out = batch.lift(uv)
     assert out.device.type == torch.device(device).type and out.dtype == torch.float32
-    assert batch[2].fx.dtype == torch.float32 if hasattr(batch[2], "fx") else batch[2].xi.dtype == torch.float32
+    assert all(p.dtype == torch.float32 for p in batch[2].parameters())
 
 
 def test_param_problems_name_the_stream_and_key():
@@ -242,12 +242,12 @@ def test_wrong_stream_count_and_construction_errors():
 # ---------------------------------------------------------------------------------------------
 # gradients
 
-def _stream_grads(batch, b, names):
-    """``{name: gradient row of stream b}`` from ``batch``'s ``.grad``-free autograd results."""
+def _row_of(batch, b):
+    """``(parameter-name prefix, row)`` of stream b in ``batch``'s parameters."""
     if batch.model is not None:
-        return {n: (batch, n, b) for n in names}
+        return "", b
     g = next(g for g, rows in batch.group_streams.items() if b in rows)
-    return {n: (batch.groups[g], n, batch.group_streams[g].index(b)) for n in names}
+    return f"groups.{g}.", batch.group_streams[g].index(b)
 
 
 @pytest.mark.parametrize("kind", ["lift", "lift_implicit", "project"])
@@ -276,27 +276,20 @@ def test_each_stream_gets_its_own_cameras_gradient(cams, kind):
         cam.requires_grad_()
         own = dict(cam.named_parameters())
         ref = torch.autograd.grad((run(cam, x[b]) * w[b]).sum(), list(own.values()), allow_unused=True)
-        prefix = "" if batch.model is not None else next(f"groups.{g}." for g, r in batch.group_streams.items()
-                                                           if b in r)
-        row = b if batch.model is not None else next(r.index(b) for r in batch.group_streams.values() if b in r)
-        for (n, _), g_ref in zip(own.items(), ref):
+        prefix, row = _row_of(batch, b)
+        for n, g_ref in zip(own, ref):
             g = grads[prefix + n]
             if g_ref is None:  # e.g. Scaramuzza's inv_poly in lift
                 assert g is None or not g[row].any()
                 continue
             assert torch.equal(g[row], g_ref), f"stream {b} {cam.model_type}.{n}"
-        # the other streams' rows of that group got nothing from stream b: checked by the sum
-    # every row's gradient came from its own stream only: zero the weights of stream 0, its rows vanish
-    w0 = w.clone()
-    w0[0] = 0
-    g0 = torch.autograd.grad((run(batch, x) * w0).sum(), list(named.values()), allow_unused=True)
-    prefix = "" if batch.model is not None else next(f"groups.{g}." for g, r in batch.group_streams.items() if 0 in r)
+    # no loss on stream 0: its rows get no gradient (each stream's parameters meet its own points only)
+    w[0] = 0
+    g0 = torch.autograd.grad((run(batch, x) * w).sum(), list(named.values()), allow_unused=True)
+    prefix, row = _row_of(batch, 0)
     for n, g in zip(named, g0):
-        if g is not None and n.startswith(prefix) and (prefix or True):
-            rows = [0] if batch.model is not None else [next(r.index(0) for r in batch.group_streams.values()
-                                                             if 0 in r)] if n.startswith(prefix) else []
-            for r in rows:
-                assert not g[r].any(), f"{n}: stream 0 has a gradient without a loss on it"
+        if g is not None and n.startswith(prefix):
+            assert not g[row].any(), f"{n}: stream 0 has a gradient without a loss on it"
 
 
 def test_gradcheck_mixed_batch():
