@@ -10,20 +10,28 @@ Convention:
       (``base.py``). The leading dimension is the stream; the rest are any number of point
       dimensions (at least one: ``(B, N, 2)``); float32 or float64, CPU or CUDA, parameters cast
       to the input's dtype and device on every call (differentiably, as the single models);
-    * the values are bit for bit stream b's single camera on ``uv[b]``: each stream's parameters
-      broadcast as ``(B, 1, ..., 1)`` (Scaramuzza's polynomials ``(B, 1, ..., 1, L)``) through the
-      single models' own elementwise code, and IEEE elementwise ops give the same bits whatever
-      the broadcast; the Kannala-Brandt critical points are one LAPACK ``eigvals`` per camera.
+    * the values are bit for bit stream b's single camera's: each stream's parameters broadcast
+      as ``(B, 1, ..., 1)`` (Scaramuzza's polynomials ``(B, 1, ..., 1, L)``) through the single
+      models' own elementwise code, and IEEE elementwise ops give the same bits whatever the
+      broadcast; the Kannala-Brandt critical points are one LAPACK ``eigvals`` per camera. One
+      caveat of torch itself, not of the batch: on the CPU ``atan2`` (Kannala-Brandt ``lift`` /
+      ``project``, Scaramuzza's ``project``) rounds differently (1 ulp) in its vectorised body and
+      its scalar tail, so where an element lands in a tensor can change its last bit — camera b
+      on ``uv[b]`` alone and on row b of ``uv`` can differ. Row b of the batch always equals
+      camera b on ``uv`` (row b), and equals camera b on ``uv[b]`` on CUDA, for every model
+      without ``atan2``, and where each stream's point count is a multiple of 64 (and torch does
+      not split the tensor over threads: one thread, or under its 32768-element grain).
 
 Storage (``state_dict``):
     * one model (every stream the same camodocal model with the same options, e.g.
       ``undistort_iters``): the model's parameter names, each ``(B,)`` (Scaramuzza's ``poly``
       ``(B, 5)``, ``inv_poly`` ``(B, 20)``): ``fx``, ``k1``, ... Row b is stream b's;
-    * mixed models: one homogeneous sub-batch per (model, options) group, a child module named by
-      the model (``pinhole``, ``kannala_brandt``, ``mei``, ``pinhole_full``, ``scaramuzza``; a model
-      seen with two option sets gets ``pinhole_2`` ...), each with its streams' rows in stream
-      order: ``pinhole.fx (B_pinhole,)``. ``group_streams[name]`` is the tuple of stream indices of
-      group ``name`` (row i of the group is stream ``group_streams[name][i]``).
+    * mixed models: one homogeneous sub-batch per (model, options) group in ``groups`` (an
+      ``nn.ModuleDict``), named by the model (``pinhole``, ``kannala_brandt``, ``mei``,
+      ``pinhole_full``, ``scaramuzza``; a model seen with a second option set gets ``pinhole_2``
+      ...), each with its streams' rows in stream order: ``groups.pinhole.fx (B_pinhole,)``.
+      ``group_streams[name]`` is the tuple of stream indices of group ``name`` (row i of the
+      group is stream ``group_streams[name][i]``); the index buffers are not in ``state_dict``.
     Parameters are ``nn.Parameter``s with ``requires_grad=False`` until ``requires_grad_()``; then
     stream b's gradient lands in its own rows only (each stream's parameters are used by its own
     points only). ``to(device, dtype)``, ``double()`` etc. work as for any module.
@@ -76,8 +84,19 @@ def _group_name(model: type, taken: Sequence[str]) -> str:
     return name
 
 
+def _subclasses(cls: type) -> List[type]:
+    out = []
+    for sub in cls.__subclasses__():
+        out += [sub] + _subclasses(sub)
+    return out
+
+
 def _model_of(model_type: str) -> type:
+    """The model class of a camodocal ``model_type`` (any letter case; a user's own ``CameraModel``
+    subclass by its exact ``model_type``)."""
     cls = MODELS.get(str(model_type).lower())
+    if cls is None:
+        cls = next((c for c in _subclasses(CameraModel) if c.model_type == model_type), None)
     if cls is None:
         raise ValueError(f"{MODEL_KEY}: unknown camodocal model {model_type!r}; expected one of "
                          f"{sorted(c.model_type for c in MODELS.values())}")
