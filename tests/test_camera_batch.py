@@ -458,3 +458,52 @@ def test_differentiable_tracker_gives_each_stream_its_own_intrinsics_gradient(tm
             assert not g_batch[others].any()
             checked += 1
     assert checked >= 3
+
+
+def test_mixed_config_tracker_module_gives_each_stream_its_own_intrinsics_gradient(tmp_path):
+    """The learned-VIO check on per-stream configs: ``TrackerModule([cfg_0, cfg_1, cfg_2])`` with
+    three calibrations (one with another ``max_cnt``): ``state_dict`` names every group's camera, the
+    module moves with its cameras, and the gradient of a loss on stream b's xy reaches stream b's own
+    intrinsics only, equal (torch.equal, see the test above) to a one-stream module's."""
+    base = tf.load_config(small_config(tmp_path))
+    cfgs = [dataclasses.replace(base, camera=_scaled(base.camera, s)) for s in SCALE_FX]
+    cfgs[1] = dataclasses.replace(cfgs[1], max_cnt=40)
+    m = tf.TrackerModule(cfgs)
+    assert m.num_streams == 3 and len(m.group_streams) >= 2
+    sd = m.state_dict()
+    fx_keys = sorted(k for k in sd if k.endswith(".fx"))
+    assert fx_keys and all(k.startswith("groups.") for k in fx_keys)
+    stored = []
+    for b in range(3):
+        cam, row = m.stream_camera(b)
+        stored.append(float(cam.fx if row is None else cam.fx[row]))
+    assert stored == [c.camera.params_dict()["fx"] for c in cfgs]
+    m.float()  # the cameras stay float64, every group's tracker follows
+    assert all(p.dtype == torch.float64 for p in m.parameters())
+    m.requires_grad_()
+    singles = [tf.TrackerModule(c) for c in cfgs]
+    for s in singles:
+        s.requires_grad_()
+    state, s_states = m.initial_state(), [s.initial_state() for s in singles]
+    checked = 0
+    for k, (imgs, stamps) in enumerate(_tracker_inputs(5)):
+        x = imgs.float()
+        state, fr = m(state, x, stamps)
+        for b, s in enumerate(singles):
+            s_states[b], fs = s(s_states[b], x[b:b + 1], stamps[b:b + 1])
+            if not fs.valid.any():
+                continue
+            K = fs.xy.shape[1]
+            w = torch.linspace(0.5, 1.5, fs.xy.numel(), dtype=fs.xy.dtype).reshape(fs.xy.shape)
+            g_single, = torch.autograd.grad((fs.xy * w * fs.valid[..., None]).sum(), s.camera.fx, retain_graph=True)
+            loss = (fr.xy[b:b + 1, :K] * w * fr.valid[b:b + 1, :K, None]).sum()
+            cams = [m.stream_camera(i) for i in range(3)]
+            grads = torch.autograd.grad(loss, [c.fx for c, _ in cams], retain_graph=True, allow_unused=True)
+            cam, row = cams[b]
+            g_own = grads[b] if row is None else grads[b][row]
+            assert g_single != 0 and torch.equal(g_own, g_single), f"step {k}, stream {b}: {g_own} vs {g_single}"
+            for i, (g, (c, r)) in enumerate(zip(grads, cams)):
+                if i != b and c is not cam and g is not None:
+                    assert not (g if r is None else g[r]).any(), f"stream {i} got a gradient from stream {b}"
+            checked += 1
+    assert checked >= 3

@@ -213,16 +213,23 @@ class CameraBatch(nn.Module):
 
     def camera(self, b: int) -> CameraModel:
         """Stream b's own single camera: the same values, dtype and device, sharing no storage."""
-        b = self._stream(b)
-        if self.model is None:
-            for name, rows in self.group_streams.items():
-                if b in rows:
-                    return self.groups[name].camera(rows.index(b))
+        batch, b = self.locate(b)
+        if batch is not self:
+            return batch.camera(b)
         p = next(iter(self.parameters()))
         values = {n: getattr(self, n)[b].detach().clone() for n in self.model.param_names}
         return self.model.from_params(values, width=self.widths[b], height=self.heights[b],
                                       camera_name=self.camera_names[b], dtype=p.dtype, device=p.device,
                                       **self.options)
+
+    def locate(self, b: int) -> Tuple[CameraBatch, int]:
+        """``(batch, row)``: the one-model batch holding stream b's parameters and its row there
+        (this batch and ``b`` for one model; a mixed batch's group), e.g. ``batch.fx[row]``."""
+        b = self._stream(b)
+        if self.model is not None:
+            return self, b
+        g = next(g for g, rows in self.group_streams.items() if b in rows)
+        return self.groups[g], self.group_streams[g].index(b)
 
     def __getitem__(self, b: int) -> CameraModel:
         return self.camera(b)
