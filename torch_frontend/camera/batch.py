@@ -263,6 +263,8 @@ class CameraBatch(nn.Module):
     def extra_repr(self) -> str:
         items = [f"num_streams={self.num_streams}", f"model_type={self.model_type!r}"]
         if self.model is not None:
+            # every stream's values, as a single model's repr has its own (what tells calibrations apart)
+            items += [f"{n}={getattr(self, n).detach().cpu().tolist()!r}" for n in self.model.param_names]
             items += [f"{k}={v!r}" for k, v in self.options.items()]
             p = next(iter(self.parameters()))
             items.append(f"dtype={p.dtype}, device={p.device}")
