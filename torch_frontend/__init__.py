@@ -22,6 +22,7 @@ _EXPORTS = {
     "load_camera": "config",
     "camera_from_config": "camera",
     "CameraModel": "camera",
+    "CameraBatch": "camera",
     "PinholeCamera": "camera",
     "PinholeFullCamera": "camera",
     "MeiCamera": "camera",

@@ -5,9 +5,12 @@ Models: ``PinholeCamera`` (``PINHOLE``), ``PinholeFullCamera`` (``PINHOLE_FULL``
 derive from ``CameraModel`` (``lift``, ``project``, ``undistort``, ``params_dict``, ``from_params``).
 ``camera_from_config`` builds one from a camodocal/VINS YAML parsed by
 ``torch_frontend.opencv_yaml.read_opencv_yaml``. See ``base.py`` for the shared conventions.
+``CameraBatch`` (``batch.py``) holds B per-stream cameras (any mix of models) with a leading stream
+dimension, usable as a tracker's camera.
 """
 
 from .base import CameraModel
+from .batch import CameraBatch
 from .factory import MODELS, camera_from_config
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
@@ -16,6 +19,7 @@ from .scaramuzza import ScaramuzzaCamera
 
 __all__ = [
     "CameraModel",
+    "CameraBatch",
     "PinholeCamera",
     "PinholeFullCamera",
     "MeiCamera",

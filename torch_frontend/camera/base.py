@@ -18,7 +18,9 @@ to an optimiser. ``torch.func.functional_call(cam, {name: tensor}, (P,))`` evalu
 (= ``project``) with other parameter values.
 
 A model holds one camera (0-d parameters; Scaramuzza's polynomials are 1-D). Leading dimensions of
-the points broadcast against it; a stack of different calibrations is a stack of modules.
+the points broadcast against it. B different calibrations (any mix of models) with a leading stream
+dimension are a ``batch.CameraBatch``, which runs these models' own ``_lift_impl`` /
+``_project_impl`` on ``(B, 1, ...)``-shaped parameters: the impls must stay elementwise.
 """
 
 from __future__ import annotations

@@ -37,8 +37,11 @@ def effective_coefficients(k2, k3, k4, k5) -> Tuple[torch.Tensor, torch.Tensor, 
     here. (If the surviving leading coefficient is itself 0 — e.g. only ``k4 == 0`` — upstream divides
     by it and its eigen-solver sees inf/NaN; we instead solve the polynomial with that zero term
     simply absent. Shipped calibrations have four non-zero coefficients, so none of this applies.)
+
+    The coefficients are 0-d (one camera) or of one broadcast shape (a camera batch's ``(B, 1, ...)``,
+    ``camera.batch.CameraBatch``): the degree is counted per camera.
     """
-    ks = torch.stack((k2, k3, k4, k5))
+    ks = torch.stack(torch.broadcast_tensors(k2, k3, k4, k5))  # (4, *camera shape)
     npow = 9 - 2 * (ks == 0).sum(0)
     # the powers 3, 5, 7, 9 compared one by one with Python numbers: a per-call tensor of them would
     # be a blocking host-to-device copy on CUDA
@@ -48,24 +51,27 @@ def effective_coefficients(k2, k3, k4, k5) -> Tuple[torch.Tensor, torch.Tensor, 
 
 
 def critical_points(k2, k3, k4, k5) -> torch.Tensor:
-    """Positive θ where ``r'(θ) = 0``, ascending, padded with +inf: shape ``(4,)``, float64, detached.
+    """Positive θ where ``r'(θ) = 0``, ascending, padded with +inf: shape ``(*camera shape, 4)``
+    (``(4,)`` for 0-d coefficients), float64, detached.
 
     ``r'(θ) = 1 + 3k2 s + 5k3 s² + 7k4 s³ + 9k5 s⁴`` with ``s = θ²``. With ``t = 1/s`` this is the
     *monic* quartic ``t⁴ + 3k2 t³ + 5k3 t² + 7k4 t + 9k5`` whatever coefficients are zero, so its
     companion matrix always exists. Between consecutive critical points ``r`` is monotone, which is
     what lets the per-pixel solver bracket the *smallest* root. Roots with a small imaginary part are
     kept on purpose: an extra split point inside a monotone interval is harmless, a missed one is not.
+    A camera batch's coefficients ``(B, 1, ...)`` give one companion matrix per camera (a batched
+    ``eigvals``: LAPACK's per-matrix routine, so each camera's roots are its own camera's bits).
     """
-    c = torch.stack((k2, k3, k4, k5)).detach().to(torch.float64)
-    a = torch.stack((9 * c[3], 7 * c[2], 5 * c[1], 3 * c[0]))  # constant .. t³ coefficient
-    comp = torch.zeros(4, 4, dtype=torch.float64, device=c.device)
-    comp[1:, :3] = torch.eye(3, dtype=torch.float64, device=c.device)
-    comp[:, 3] = -a
+    c = torch.stack(torch.broadcast_tensors(k2, k3, k4, k5), -1).detach().to(torch.float64)  # (..., 4)
+    a = torch.stack((9 * c[..., 3], 7 * c[..., 2], 5 * c[..., 1], 3 * c[..., 0]), -1)  # constant .. t³ coefficient
+    comp = torch.zeros(c.shape[:-1] + (4, 4), dtype=torch.float64, device=c.device)
+    comp[..., 1:, :3] = torch.eye(3, dtype=torch.float64, device=c.device)
+    comp[..., :, 3] = -a
     t = torch.linalg.eigvals(comp)
     keep = (t.real > 0) & (t.imag.abs() <= 1e-6 * t.abs())
     tr = torch.where(keep, t.real, torch.zeros_like(t.real))
     theta = torch.where(keep, 1.0 / torch.sqrt(torch.where(keep, tr, torch.ones_like(tr))), torch.full_like(tr, float("inf")))
-    return torch.sort(theta).values
+    return torch.sort(theta, dim=-1).values
 
 
 def _root_bound(rho: torch.Tensor, k2, k3, k4, k5) -> torch.Tensor:
@@ -98,7 +104,8 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50, crit=None) -
 
     Args:
         rho: ``(...)`` non-negative radii in normalised units.
-        k2..k5: 0-d coefficients (already degree-reduced by ``effective_coefficients``).
+        k2..k5: 0-d coefficients (already degree-reduced by ``effective_coefficients``), or a camera
+            batch's ``(B, 1, ..., 1)`` that broadcast against ``rho (B, ...)``.
         iters: safeguarded Newton iterations, a fixed count (no host sync). The shipped calibrations
             converge to 1e-14 rad in 5; random non-monotone polynomials needed up to ~40 (bisection
             fallbacks), so the default is 50.
@@ -125,7 +132,8 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50, crit=None) -
     ends = torch.cat(
         (torch.zeros_like(r)[..., None], torch.minimum(crit, bound[..., None]), bound[..., None]), dim=-1
     )  # (..., 6), non-decreasing
-    fe = _poly_r(ends, *kd) - r[..., None]
+    # a camera batch's (B, 1, ...) coefficients get the endpoints' trailing dimension (0-d: as they are)
+    fe = _poly_r(ends, *[k.unsqueeze(-1) if k.dim() else k for k in kd]) - r[..., None]
     pos = fe >= 0
     has = pos.any(dim=-1)
     j = torch.argmax(pos.to(torch.int8), dim=-1)  # first endpoint with f >= 0

@@ -14,11 +14,12 @@ INV_POLY_SIZE = 20
 
 def _ascending_poly(coeffs: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``Σ c_i x^i`` summed in ascending order with a running power, as upstream does (not Horner),
-    so the rounding matches camodocal's loop."""
+    so the rounding matches camodocal's loop. ``coeffs (..., L)``: one camera's ``(L,)`` or a camera
+    batch's ``(B, 1, ..., 1, L)`` (coefficient i is ``coeffs[..., i]``, broadcast against ``x``)."""
     acc = torch.zeros_like(x)
     xi = torch.ones_like(x)
-    for i in range(coeffs.shape[0]):
-        acc = acc + xi * coeffs[i]
+    for i in range(coeffs.shape[-1]):
+        acc = acc + xi * coeffs[..., i]
         xi = xi * x
     return acc
 

@@ -11,6 +11,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import Optional, Union
 
@@ -94,28 +95,81 @@ class TrackerModule(nn.Module):
     The camera models are sub-modules (``module.camera``, ``module.camera1`` for stereo), so
     ``state_dict()``, ``parameters()`` and ``.to(device)`` see them; they stay float64 (camodocal's
     double precision) whatever ``.float()`` / ``.half()`` asks. Make a new ``initial_state()``
-    after moving the module.
+    after moving the module. Per-stream cameras: a ``camera.CameraBatch`` of B cameras (the
+    tracker's own, or set with :meth:`use_camera`) is registered the same way: ``state_dict()``
+    holds every stream's parameters, ``camera.fx`` ``(B,)`` (mixed models:
+    ``camera.groups.<model>.fx``, ``CameraBatch`` docstring), and stream b's outputs get gradients
+    through its own rows only. Per-stream configs (``config`` a sequence of B configs whose
+    streams fall into several groups, ``FeatureTracker.groups``): ``module.camera`` is None and
+    group i's cameras are ``module.groups[i].camera`` / ``.camera1`` (``state_dict`` keys
+    ``groups.<i>.camera.fx``, ...), its streams ``module.group_streams[i]``.
     """
 
-    def __init__(self, config, num_streams: int = 1, *, mode: str = "mono", dtype: torch.dtype = torch.float32,
-                 fisheye_mask: Optional[torch.Tensor] = None, seed: int = 0, capturable: bool = False,
-                 grad_mode: str = "implicit", device: Union[str, torch.device] = "cpu"):
+    def __init__(self, config, num_streams: Optional[int] = None, *, mode: str = "mono",
+                 dtype: torch.dtype = torch.float32, fisheye_mask: Optional[torch.Tensor] = None, seed: int = 0,
+                 capturable: bool = False, grad_mode: str = "implicit", device: Union[str, torch.device] = "cpu"):
         super().__init__()
         tracker = FeatureTracker(config, num_streams, device=device, mode=mode, dtype=dtype,
                                  fisheye_mask=fisheye_mask, seed=seed, capturable=capturable, differentiable=True,
                                  grad_mode=grad_mode)
         object.__setattr__(self, "tracker", tracker)  # a plain attribute: not a module, not in state_dict
-        self.camera = tracker.params.camera
-        self.camera1 = tracker.params.camera1  # None without a stereo camera (registered as absent)
+        self.group_streams = tuple(streams for streams, _ in tracker.groups)
+        if len(self.group_streams) > 1:  # per-stream configs in several groups: each group's cameras
+            self.camera = self.camera1 = None
+            self.groups = nn.ModuleList(_GroupCameras(m.params.camera, m.params.camera1) for _, m in tracker.groups)
+        else:
+            self.camera = tracker.params.camera
+            self.camera1 = tracker.params.camera1  # None without a stereo camera (registered as absent)
 
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)
-        # the cameras' parameters moved in place; the tracker's device, mask and (float64) cameras follow
-        device = next(self.camera.parameters()).device
+        # the cameras' parameters moved in place; the trackers' devices, masks and (float64) cameras follow
+        device = next(self.parameters()).device
         t = self.tracker
         t.device = device
-        t.params = t.params.to(device)
+        for _, member in t.groups:  # (this tracker itself when its streams share one config)
+            member.device = device
+            member.params = member.params.to(device)
+        inverse = getattr(t, "_inverse", None)  # a mixed tracker's stream order on the device
+        if inverse is not None:
+            t._inverse = inverse.to(device)
         return self
+
+    def use_camera(self, camera, camera1=None) -> None:
+        """Track with ``camera`` (and, fusion stereo, ``camera1``; None keeps the current one): a
+        single ``CameraModel`` or a ``camera.CameraBatch`` of ``num_streams`` per-stream cameras
+        (e.g. ``CameraBatch.repeat(module.camera, B)`` to learn each stream's intrinsics). It is
+        moved to the module's device as float64 (in place, as ``nn.Module.to``) and registered as
+        the module's ``camera`` (``state_dict``, ``parameters``). ``ValueError`` when a batch's
+        stream count is not the tracker's, or the tracker has several stream groups."""
+        t = self.tracker
+        if len(self.group_streams) > 1:
+            raise ValueError(f"use_camera: this tracker has {len(self.group_streams)} stream groups (per-stream "
+                             f"configs); set each group's camera on its tracker (tracker.groups)")
+        for name, cam in (("camera", camera), ("camera1", camera1)):
+            n = getattr(cam, "num_streams", None)
+            if n is not None and n != t.B:
+                raise ValueError(f"{name}: a camera batch of {n} streams for a tracker of {t.B} streams")
+        camera = camera.to(device=t.device, dtype=torch.float64)
+        camera1 = t.params.camera1 if camera1 is None else camera1.to(device=t.device, dtype=torch.float64)
+        t.params = dataclasses.replace(t.params, camera=camera, camera1=camera1)  # checks the values
+        self.camera, self.camera1 = camera, camera1
+
+    def stream_camera(self, stream: int, camera1: bool = False):
+        """``(module, row)``: where stream ``stream``'s camera 0 (``camera1``: camera 1) parameters
+        live. A single camera shared by the stream's group: ``(camera, None)`` (its 0-d ``fx`` is
+        the stream's); a ``CameraBatch``: its one-model batch and the stream's row
+        (``module.fx[row]``)."""
+        if not 0 <= stream < self.tracker.B:
+            raise ValueError(f"stream: expected 0 <= stream < {self.tracker.B}, got {stream}")
+        i = next(i for i, streams in enumerate(self.group_streams) if stream in streams)
+        holder = self if len(self.group_streams) == 1 else self.groups[i]
+        cam = holder.camera1 if camera1 else holder.camera
+        if cam is None:
+            return None, None
+        if hasattr(cam, "locate"):
+            return cam.locate(self.group_streams[i].index(stream))
+        return cam, None
 
     @property
     def num_streams(self) -> int:
@@ -129,9 +183,21 @@ class TrackerModule(nn.Module):
         return self.tracker.step(state, images, timestamps, right=right, active=active)
 
     def extra_repr(self) -> str:
-        p = self.tracker.params
-        return (f"mode={p.mode!r}, num_streams={self.tracker.B}, max_cnt={p.max_cnt}, grad_mode={p.lk_grad_mode!r}, "
-                f"capturable={p.capturable}")
+        t = self.tracker
+        p = t.groups[0][1].params
+        return (f"mode={t.mode!r}, num_streams={t.B}, max_cnt={t.K}, grad_mode={p.lk_grad_mode!r}, "
+                f"capturable={p.capturable}" + (f", groups={len(self.group_streams)}" if len(self.group_streams) > 1
+                                                else ""))
+
+
+class _GroupCameras(nn.Module):
+    """One stream group's cameras as sub-modules (``camera``, ``camera1`` or None) of a
+    :class:`TrackerModule` with per-stream configs."""
+
+    def __init__(self, camera, camera1) -> None:
+        super().__init__()
+        self.camera = camera
+        self.camera1 = camera1
 
 
 __all__ = ["LucasKanade", "TrackerModule", "STATUS_MODES"]

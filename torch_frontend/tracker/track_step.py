@@ -331,10 +331,11 @@ def _frame(new: TrackerState, velocity: Tensor, tracked: Tensor, valid: Tensor, 
         restarted=decision.restarted, tracked=decision.tracked, timestamps=t, overflow=overflow, **extra)
 
 
-def _publish_stages(table, img_eq, publish: Tensor, params: TrackerParams, stage):
+def _publish_stages(table, img_eq, publish: Tensor, params: TrackerParams, stage, camera=None):
     """readImage's published-frame part (spec §3.6 step 7) for the ``publish`` streams:
-    rejectWithF, setMask, addPoints. Returns ``(table, overflow)``."""
-    table, of_f = reject_with_f(table, publish, params.camera, params, stage=stage)
+    rejectWithF, setMask, addPoints. Returns ``(table, overflow)``. ``camera``: the streams' camera
+    (default ``params.camera``; a sub-batch's own rows of a per-stream ``CameraBatch``)."""
+    table, of_f = reject_with_f(table, publish, params.camera if camera is None else camera, params, stage=stage)
     table, of_det = _detect(table.replace(prev_pts=None), img_eq, publish, params, stage)
     return table, merge_overflow(of_f, of_det)
 
@@ -349,8 +350,10 @@ def _publish_lanes(table, img_eq, publish: Tensor, lanes: int, params: TrackerPa
     stream's stages depend on no other stream (RANSAC seeds every problem alike, detection and
     setMask are per image), so the sub-batch gives the full batch's bits."""
     rows = torch.sort((~publish).to(torch.uint8), stable=True).indices[:lanes]
+    # a per-stream camera batch (camera.CameraBatch) lifts the sub-batch with its rows' cameras
+    sub_camera = params.camera.index_streams(rows) if hasattr(params.camera, "index_streams") else params.camera
     sub, of = _publish_stages(table.streams(rows), img_eq.index_select(0, rows), publish.index_select(0, rows),
-                              params, stage)
+                              params, stage, camera=sub_camera)
     full = table.replace(prev_pts=None, is_new=torch.zeros_like(table.valid))
     if of is not None:
         of = torch.zeros_like(publish).index_copy(0, rows, of)
