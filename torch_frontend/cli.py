@@ -4,8 +4,9 @@ This module does argparse and printing only: each command builds the options of 
 its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
 exit codes.
 
-``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR)... --out DIR`` runs the
-VINS front end on one or more sequences at once (B streams in one batched tracker) and writes
+``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
+--out DIR`` runs the VINS front end on one or more sequences at once (B streams in one batched
+tracker, each with its own config: :func:`_paired_inputs`) and writes
 ``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
 (``pipelines.track.run_track``; see ``torch_frontend.outputs``). ``torch-frontend demo`` does the
 same on the sample EuRoC frames shipped with the package.
