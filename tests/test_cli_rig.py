@@ -289,3 +289,30 @@ def test_loop_keeps_each_inputs_config(loop_rig, tmp_path, capsys):
     assert rc == 2
     assert_one_error_line(err, "a.yaml", "c.yaml", "different camera-to-body extrinsics", "--separate-graphs")
     assert not (tmp_path / "ac").exists()
+
+
+def test_each_stream_checked_against_its_own_size(rig, tmp_path, capsys):
+    """The 160 x 128 input twice, with its own sensor.yaml and with a 256 x 192 config: the error
+    names the frame, its stream and that stream's expected size (exit 1, nothing written)."""
+    out = tmp_path / "o"
+    rc, _, err = run_cli(capsys, "track", "--euroc", rig["C"], "--euroc", rig["C"], "--config", rig["a"],
+                         "--out", out, "--no-progress", "--no-tracks")
+    assert rc == 1, err
+    assert_one_error_line(err, "image size 160x128 differs from the expected 256x192 of stream 1")
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_stack_images_pads_mixed_sizes():
+    """``io.multistream.stack_images``: one size stacks (sizes None); several pad at the bottom
+    and right with zeros, into a given (pinned-like) buffer too, and give each (H_b, W_b)."""
+    from torch_frontend.io.multistream import padded_shape, stack_images
+
+    a = np.full((4, 6), 7, np.uint8)
+    b = np.full((5, 3), 9, np.uint8)
+    same, sizes = stack_images([a, a])
+    assert sizes is None and same.shape == (2, 4, 6)
+    buf = np.full(padded_shape([a, b]), 255, np.uint8)  # a reused buffer: the padding is cleared
+    out, sizes = stack_images([a, b], out=buf)
+    assert out is buf and sizes.tolist() == [[4, 6], [5, 3]]
+    assert (out[0, :4, :6] == 7).all() and (out[0, 4:] == 0).all()
+    assert (out[1, :5, :3] == 9).all() and (out[1, :, 3:] == 0).all()
