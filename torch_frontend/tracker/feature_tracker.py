@@ -39,10 +39,9 @@ from .streams import (
     merge_frames,
     partition,
     split_images,
-    split_rows,
     stream_configs,
 )
-from .track_step import check_active, check_inputs, check_timestamps, step_impl
+from .track_step import check_active, check_images, check_inputs, check_timestamps, step_impl
 
 
 class _StageTimer:
@@ -492,6 +491,10 @@ class FeatureTracker:
                                           config_name=f"the config {self.config.path}")
         if self._restarts is not None:  # host values only: no sync (clock.RestartWatch)
             self._restarts.observe(state, timestamps, active)
+        return self._run(state, img, t, arrived, r, plan, host)
+
+    def _run(self, state, img, t, arrived, r, plan, host):
+        """The step on checked inputs (the door's outputs) and the host's plan; keeps the mirrors."""
         if self._compiled is not None:
             new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
         else:
@@ -504,29 +507,57 @@ class FeatureTracker:
 
     def _grouped_step(self, state, images, timestamps, right, active, sizes):
         """:meth:`step` of per-stream inputs (a list of images, a padded batch with ``sizes``) or of a
-        mixed tracker: the inputs split per group on the host (``tracker.streams``), each group's
-        homogeneous step, the frames merged in stream order."""
+        mixed tracker: the whole batch checked once (each stream against its own config), uploaded
+        once, split per group on the device (``tracker.streams``), each group's homogeneous step on
+        its rows, the frames merged in stream order."""
         groups = self._groups or (StreamGroup(tuple(range(self.B))),)
         members = self._members or (self,)
-        imgs, hw = split_images(images, sizes, groups, self.B)
-        rights = [None] * len(groups) if right is None else split_images(right, sizes, groups, self.B, "right")[0]
+        dev = self.device
+        imgs, hw = split_images(images, sizes, groups, self.B, device=dev)
+        rights = [None] * len(groups) if right is None else \
+            split_images(right, sizes, groups, self.B, "right", device=dev)[0]
         for b in range(self.B):  # each stream against its own config (host shapes, no sync)
             p = members[0].params if self._groups is None else self.stream_params(b)
             if p.mode == "mono" and hw[b] != (p.height, p.width):
                 name = self.configs[b].path
                 raise ValueError(f"images[{b}]: image size {hw[b][1]}x{hw[b][0]} differs from stream {b}'s config "
                                  f"{name}: image_width x image_height = {p.width}x{p.height}")
-        times = split_rows(timestamps, groups, self.B, "timestamps")
-        acts = split_rows(active, groups, self.B, "active")
         if self._groups is None:
-            imgs0 = imgs[0] if isinstance(images, (list, tuple)) or sizes is not None else images
-            return self.step(state, imgs0, timestamps, right=rights[0], active=active)
+            return self.step(state, imgs[0], timestamps, right=rights[0], active=active)
         if not isinstance(state, GroupedState) or len(state.groups) != len(self._members):
             raise ValueError(f"state: expected this tracker's GroupedState of {len(self._members)} stream groups "
                              f"(tracker.initial_state()), got {type(state).__name__}")
+        on_host = not (isinstance(timestamps, torch.Tensor) and timestamps.device.type != "cpu")
+        act_host = not (isinstance(active, torch.Tensor) and active.device.type != "cpu")
+        t_all = check_timestamps(timestamps, self.B, dev)  # checked on the host, one upload
+        a_all = check_active(active, self.B, dev)
+        need_host = any(m._plans or m._restarts is not None for m in self._members)
+        # the host's copies for the groups' plans and restart watches (device ones are read back: a
+        # sync, as for a homogeneous tracker given device timestamps)
+        t_host = check_timestamps(timestamps, self.B, "cpu") if need_host else None
+        a_host = check_active(active, self.B, "cpu") if need_host else None
         news, frames = [], []
-        for m, s, im, t, r, a in zip(self._members, state.groups, imgs, times, rights, acts):
-            new, frame = m.step(s, im, t, right=r, active=a)
+        for g, m, s, im, r in zip(self._groups, self._members, state.groups, imgs, rights):
+            idx = g.index(dev)
+            t_g, a_g = t_all.index_select(0, idx), a_all.index_select(0, idx)
+            th = None if t_host is None else t_host[list(g.streams)]
+            ah = None if a_host is None else a_host[list(g.streams)]
+            plan = host = None
+            if m._plans:
+                plan, host = m._plan(s, th, ah)
+            prev = None if s.prev_pyramid is None else tuple(s.prev_pyramid.levels[0].shape[-2:])
+            img = check_images(im, m.params, g.size, dev, size=prev)
+            rr = None
+            if r is not None:
+                if m.mode == "mono":
+                    raise ValueError("right: stereo images are only supported with mode='fusion'")
+                if m.params.camera1 is None:
+                    raise ValueError(f"right: streams {list(g.streams)}: the config {m.config.path} has no "
+                                     f"cam1_calib (num_of_cam 2)")
+                rr = check_images(r, m.params, g.size, dev, "right", size=tuple(img.shape[-2:]))
+            if m._restarts is not None:
+                m._restarts.observe(s, th if on_host else t_g, ah if act_host else a_g)
+            new, frame = m._run(s, img, t_g, a_g, rr, plan, host)
             news.append(new)
             frames.append(frame)
         return GroupedState(tuple(news)), merge_frames(frames, self._groups, self.K, self._inverse)

@@ -183,14 +183,16 @@ def _host_sizes(sizes, batch: int) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def split_images(images, sizes, groups: Sequence[StreamGroup], batch: int, name: str = "images"
+def split_images(images, sizes, groups: Sequence[StreamGroup], batch: int, name: str = "images", device=None
                  ) -> Tuple[List[Any], List[Tuple[int, int]]]:
     """``images`` of B streams as one ``(B_g, 1, H_g, W_g)`` (or ``(B_g, H_g, W_g)``) batch per group,
     and every stream's ``(H, W)``.
 
     A list of B images: each group's images are stacked (they must share a size: a group's
     streams have one config). A tensor ``(B, [1,] H, W)``: rows taken per group, cropped to
-    ``sizes`` where given (the top-left ``H_b x W_b`` of a padded batch)."""
+    ``sizes`` where given (the top-left ``H_b x W_b`` of a padded batch). ``device``: where the
+    groups' batches go; on a device other than the CPU the batch is uploaded once (a list: padded
+    on the host first) and split there, so the step has one image upload whatever the groups."""
     if isinstance(images, (list, tuple)):
         if sizes is not None:
             raise ValueError(f"sizes: give sizes with one padded {name} tensor; a list of {name} has their own")
@@ -201,6 +203,15 @@ def split_images(images, sizes, groups: Sequence[StreamGroup], batch: int, name:
             if im.dim() not in (2, 3) or (im.dim() == 3 and im.shape[0] != 1):
                 raise ValueError(f"{name}[{b}]: expected (H, W) or (1, H, W), got {tuple(im.shape)}")
         hw = [(int(im.shape[-2]), int(im.shape[-1])) for im in tensors]
+        on_device = device is not None and torch.device(device).type != "cpu" and all(
+            im.device.type == "cpu" for im in tensors)
+        if on_device and len({im.dtype for im in tensors}) == 1:
+            # one padded host batch, one upload, then the tensor path (split on the device)
+            H, W = max(h for h, _ in hw), max(w for _, w in hw)
+            padded = tensors[0].new_zeros((batch, 1, H, W))
+            for b, im in enumerate(tensors):
+                padded[b, 0, :hw[b][0], :hw[b][1]] = im.reshape(hw[b])
+            return split_images(padded.to(device), [list(x) for x in hw], groups, batch, name)
         out = []
         for g in groups:
             sz = {hw[b] for b in g.streams}
@@ -212,6 +223,8 @@ def split_images(images, sizes, groups: Sequence[StreamGroup], batch: int, name:
         return out, hw
     if not isinstance(images, torch.Tensor):
         images = torch.as_tensor(images)
+    if device is not None and len(groups) > 1 and images.device != torch.device(device):
+        images = images.to(device)  # one upload; the groups' rows are taken on the device
     if images.dim() not in (3, 4) or images.shape[0] != batch:
         raise ValueError(f"{name}: expected {batch} streams (B, 1, H, W), a list of {batch} images, got "
                          f"{tuple(images.shape)}")
@@ -236,29 +249,6 @@ def split_images(images, sizes, groups: Sequence[StreamGroup], batch: int, name:
         rows = images if g.size == batch else images.index_select(0, g.index(images.device))
         out.append(rows if (h, w) == (H, W) else rows[..., :h, :w])
     return out, hw
-
-
-def split_rows(x, groups: Sequence[StreamGroup], batch: int, name: str) -> List[Any]:
-    """A per-stream ``(B,)`` input (tensor, array, sequence; a scalar is every stream's) as one value
-    per group. Tensors keep their device and dtype (the groups' doors check them as usual)."""
-    if x is None:
-        return [None] * len(groups)
-    if isinstance(x, torch.Tensor):
-        t = x
-    elif isinstance(x, np.ndarray):
-        t = torch.from_numpy(np.array(x))
-    else:
-        t = torch.as_tensor(x)
-    if t.dim() == 0:
-        return [x] * len(groups)
-    if t.shape[0] != batch:
-        raise ValueError(f"{name}: expected ({batch},) one per stream, got {tuple(t.shape)}")
-    if len(groups) == 1:
-        return [x]
-    if isinstance(x, torch.Tensor):
-        return [t.index_select(0, g.index(t.device)) for g in groups]
-    arr = np.asarray(x)
-    return [arr[list(g.streams)] for g in groups]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -310,5 +300,4 @@ def inverse_order(groups: Sequence[StreamGroup]) -> Optional[List[int]]:
     return inv
 
 
-__all__ = ["GroupedState", "StreamGroup", "group_key", "merge_frames", "partition", "split_images", "split_rows",
-           "stream_configs"]
+__all__ = ["GroupedState", "StreamGroup", "group_key", "merge_frames", "partition", "split_images", "stream_configs"]
