@@ -316,3 +316,18 @@ def test_stack_images_pads_mixed_sizes():
     assert out is buf and sizes.tolist() == [[4, 6], [5, 3]]
     assert (out[0, :4, :6] == 7).all() and (out[0, 4:] == 0).all()
     assert (out[1, :5, :3] == 9).all() and (out[1, :, 3:] == 0).all()
+
+
+def test_bags_and_compare_per_stream(rig, tmp_path, capsys):
+    """``--write-bag`` with two configs: stream 1's bag is the bag of input 1's run alone with its
+    config (``compare``: 100 % agreement), and ``compare`` names the compared stream's config."""
+    _track(capsys, tmp_path / "ab", "--euroc", rig["A"], "--config", rig["a"], "--euroc", rig["A"],
+           "--config", rig["b"], "--write-bag", "features.bag")
+    _track(capsys, tmp_path / "b", rig["b"], "--euroc", rig["A"], "--write-bag", "features.bag")
+    rc, stdout, err = run_cli(capsys, "compare", tmp_path / "b" / "features.bag", tmp_path / "ab", "--stream", 1,
+                              "--out", tmp_path / "cmp")
+    assert rc == 0, err
+    assert "agreement     100.00 %" in stdout
+    r = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert r["other"].endswith("features_stream1.bag") and r["agreement"] == 1.0
+    assert r["other_stream"]["config"] == str(rig["b"]) and r["other_stream"]["camera"]["width"] == 256
