@@ -6,6 +6,7 @@ from typing import Any, Dict, Tuple
 
 import torch
 
+from .._autodiff import is_wrapper
 from .base import CameraModel, check_iters, safe_norm2
 
 
@@ -24,6 +25,10 @@ def _poly_dr(theta: torch.Tensor, k2, k3, k4, k5) -> torch.Tensor:
     return 1 + s * (3 * k2 + s * (5 * k3 + s * (7 * k4 + s * (9 * k5))))
 
 
+#: the odd powers of k2..k5 in r(θ)
+_POWERS = (3, 5, 7, 9)
+
+
 def effective_coefficients(k2, k3, k4, k5) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Upstream's degree-dropping quirk, as tensor ops (no host sync).
 
@@ -34,9 +39,11 @@ def effective_coefficients(k2, k3, k4, k5) -> Tuple[torch.Tensor, torch.Tensor, 
     simply absent. Shipped calibrations have four non-zero coefficients, so none of this applies.)
     """
     ks = torch.stack((k2, k3, k4, k5))
-    npow = 9 - 2 * (ks == 0).sum()
-    powers = torch.tensor([3, 5, 7, 9], device=ks.device)
-    ks = torch.where(powers <= npow, ks, torch.zeros_like(ks))
+    npow = 9 - 2 * (ks == 0).sum(0)
+    # the powers 3, 5, 7, 9 compared one by one with Python numbers: a per-call tensor of them would
+    # be a blocking host-to-device copy on CUDA
+    keep = torch.stack([npow >= power for power in _POWERS])
+    ks = torch.where(keep, ks, torch.zeros_like(ks))
     return ks[0], ks[1], ks[2], ks[3]
 
 
@@ -86,7 +93,7 @@ def _root_bound(rho: torch.Tensor, k2, k3, k4, k5) -> torch.Tensor:
     return 2.0 * b * (1.0 + 1e-12) + 1e-300
 
 
-def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50) -> torch.Tensor:
+def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50, crit=None) -> torch.Tensor:
     """Smallest non-negative root θ of ``r(θ) = ρ`` (upstream: smallest kept companion-matrix eigenvalue).
 
     Args:
@@ -95,6 +102,8 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50) -> torch.Ten
         iters: safeguarded Newton iterations, a fixed count (no host sync). The shipped calibrations
             converge to 1e-14 rad in 5; random non-monotone polynomials needed up to ~40 (bisection
             fallbacks), so the default is 50.
+        crit: ``critical_points(k2, k3, k4, k5)`` when the caller has it (a camera keeps it while
+            its coefficients are unchanged: the eigen-solver waits for the device).
 
     Returns:
         ``(...)`` θ in radians; ``θ = ρ`` where no non-negative root exists (upstream's fallback).
@@ -110,7 +119,7 @@ def solve_theta(rho: torch.Tensor, k2, k3, k4, k5, iters: int = 50) -> torch.Ten
     """
     dt = rho.dtype
     kd = [k.detach() for k in (k2, k3, k4, k5)]
-    crit = critical_points(*kd).to(device=rho.device, dtype=dt)
+    crit = (critical_points(*kd) if crit is None else crit).to(device=rho.device, dtype=dt)
     r = rho.detach()
     bound = _root_bound(r, *kd)
     ends = torch.cat(
@@ -230,6 +239,25 @@ class KannalaBrandtCamera(CameraModel):
     def _extra_repr_items(self) -> Dict[str, Any]:
         return {"solver_iters": self.solver_iters} if self.solver_iters != 50 else {}
 
+    def _critical_points(self, raw, ks) -> torch.Tensor:
+        """:func:`critical_points` of the effective coefficients ``ks`` of ``raw = (k2, k3, k4, k5)``,
+        kept while ``raw`` is unchanged: the companion matrix's eigenvalues make CUDA wait for the
+        device (``linalg.eigvals`` checks for errors on the host), so a tracker's per-frame lift
+        would sync twice per step; with the memo it syncs once, on the first lift of a calibration.
+
+        The key is each tensor's storage and in-place version counter (an optimiser step bumps it);
+        the memo holds ``raw`` itself, so no other tensor can take a storage it keys on. Under
+        ``torch.compile`` or a ``torch.func`` transform (wrappers own no storage) it computes afresh."""
+        if torch.compiler.is_compiling() or any(is_wrapper(k) for k in raw):
+            return critical_points(*ks)
+        key = tuple((k.data_ptr(), k._version, k.dtype, k.device) for k in raw)
+        memo = self.__dict__.get("_critical_memo")
+        if memo is not None and memo[0] == key:
+            return memo[2]
+        crit = critical_points(*ks)
+        self.__dict__["_critical_memo"] = (key, raw, crit)  # a plain attribute: not a buffer, not saved
+        return crit
+
     def _project_impl(self, P, k2, k3, k4, k5, mu, mv, u0, v0):
         X, Y, Z = P[..., 0], P[..., 1], P[..., 2]
         n, nz = safe_norm2(X, Y)
@@ -247,6 +275,7 @@ class KannalaBrandtCamera(CameraModel):
         far = ~(rho < 1e-10)  # NaN pixels stay NaN (through θ = ρ = NaN)
         # atan2(0, 0) has a NaN derivative in torch: feed it (1, 0) in the lanes where upstream sets φ = 0.
         phi = torch.atan2(torch.where(far, py, torch.zeros_like(py)), torch.where(far, px, torch.ones_like(px)))
-        theta = solve_theta(rho, *effective_coefficients(k2, k3, k4, k5), iters=self.solver_iters)
+        ks = effective_coefficients(k2, k3, k4, k5)
+        theta = solve_theta(rho, *ks, iters=self.solver_iters, crit=self._critical_points((k2, k3, k4, k5), ks))
         st = torch.sin(theta)
         return torch.stack((st * torch.cos(phi), st * torch.sin(phi), torch.cos(theta)), dim=-1)
