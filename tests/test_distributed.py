@@ -220,6 +220,31 @@ def test_torchrun_track_two_ranks_matches_one_process(inputs, tmp_path):
     assert no_temporaries(out)
 
 
+def test_sharded_track_keeps_each_inputs_config(inputs, tmp_path):
+    """2 forked ranks, three inputs with three configs (``--config`` after input 0, another after
+    input 1, input 2 its own sensor.yaml): each ``stream<b>/`` is the run of input b alone with
+    its config, the merged summary names every stream's config (per_stream) and camera."""
+    cfg, seqs = inputs["config"], inputs["seqs"]
+    other = tmp_path / "other.yaml"
+    text = cfg.read_text()
+    assert "fx: 4.616e+02" in text and "max_cnt: 60" in text
+    other.write_text(text.replace("fx: 4.616e+02", "fx: 5.5e+02").replace("max_cnt: 60", "max_cnt: 40"))
+    per = [cfg, other, seqs[2] / "mav0" / "cam0" / "sensor.yaml"]
+    out = tmp_path / "dist"
+    args = ["track", "--euroc", seqs[0], "--config", cfg, "--euroc", seqs[1], "--config", other, "--euroc", seqs[2],
+            "--out", out, "--no-progress", "--no-tracks", "--max-frames", 4]
+    res = run_ranks(args, tmp_path / "logs")
+    assert [r.rc for r in res] == [0, 0], res
+    assert res[0].out.count("config        ") == 3 and "(stream 1)" in res[0].out  # one line per config
+    s = json.loads((out / "summary.json").read_text())
+    assert [e["config"] for e in s["per_stream"]] == [str(p) for p in per]
+    assert s["per_stream"][2]["camera"]["model"] == "PINHOLE"
+    for b, seq in enumerate(seqs):
+        one = tmp_path / f"one{b}"
+        run_track(per[b], [("euroc", seq)], one, TrackOptions(progress=False, write_tracks=False, max_frames=4))
+        assert_same_output_set(one, out / f"stream{b}")
+
+
 def test_corrupt_input_on_one_rank_fails_cleanly(inputs, tmp_path):
     cfg = inputs["config"]
     fr = sample_frames("cam0")

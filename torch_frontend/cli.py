@@ -4,8 +4,9 @@ This module does argparse and printing only: each command builds the options of 
 its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
 exit codes.
 
-``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR)... --out DIR`` runs the
-VINS front end on one or more sequences at once (B streams in one batched tracker) and writes
+``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
+--out DIR`` runs the VINS front end on one or more sequences at once (B streams in one batched
+tracker, each with its own config: :func:`_paired_inputs`) and writes
 ``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
 (``pipelines.track.run_track``; see ``torch_frontend.outputs``). ``torch-frontend demo`` does the
 same on the sample EuRoC frames shipped with the package.
@@ -205,13 +206,82 @@ def _progress(args: argparse.Namespace):
     return False if args.no_progress else None
 
 
-def _check_inputs(config, sources: Sequence[Tuple[str, str]], kinds: str) -> None:
-    """The usage errors of ``track``/``loop`` inputs, in the command line's words."""
+def _flag(source) -> str:
+    """A source as the command line names it (``--euroc DIR``)."""
+    return f"--{source[0]} {source[1]}"
+
+
+def _paired_inputs(args: argparse.Namespace) -> Tuple[List[Tuple], Any]:
+    """The inputs of ``track``/``loop`` and their configs, from the one ordered list that
+    ``--euroc/--bag/--images``, ``--config`` and ``--rig`` append to (``_SourceAction``), and the
+    positional CONFIG. Returns ``(sources, config)``: ``config`` is the pipelines' (one config for
+    every input, None, or one entry per input: its own, else CONFIG's, else None, its own
+    ``sensor.yaml``).
+
+    Rules (the ``--config`` help): a ``--config`` applies to the input just before it; one before
+    the first input is CONFIG (every input without its own), and then no input may have its own
+    ``--config`` (that order reads as "config before its input", which is not the rule); a rig
+    file's entries name theirs (``config:``). Misuse is a usage error."""
+    from .pipelines.rig import read_rig
+
+    sources: List[Tuple] = []
+    own: List[Any] = []  # per input: its --config / rig config, or None
+    from_flag: List[bool] = []  # the input's config came from a --config (not a rig entry)
+    common, leading = args.config, None
+    last = None  # what the previous item was: None, "input" or the rig file
+    for kind, value in args.sources or []:
+        if kind == "config":
+            if last is None:
+                if common is not None or leading is not None:
+                    raise _UsageError(f"--config {value}: a config for every input is given twice "
+                                      f"({common or leading} and {value}); give one")
+                leading = Path(value)
+            elif last != "input":
+                raise _UsageError(f"--config {value} after --rig {last}: a rig file's inputs name their own "
+                                  f"config (its 'config:' key); a --config applies to the --euroc/--bag/--images "
+                                  f"input just before it")
+            elif own[-1] is not None:
+                raise _UsageError(f"--config {value}: input {len(sources)} ({_flag(sources[-1])}) already has "
+                                  f"--config {own[-1]}; give one --config after each input")
+            else:
+                own[-1] = Path(value)
+                from_flag[-1] = True
+            continue
+        if kind == "rig":
+            rs, rc = read_rig(value)
+            sources += rs
+            own += rc
+            from_flag += [False] * len(rs)
+            last = str(value)
+            continue
+        sources.append((kind, value))
+        own.append(None)
+        from_flag.append(False)
+        last = "input"
+    if leading is not None:
+        if any(from_flag):
+            b = from_flag.index(True)
+            raise _UsageError(f"--config {leading} before the first input, and --config {own[b]} after input "
+                              f"{b + 1} ({_flag(sources[b])}): a --config applies to the input just before it, "
+                              f"so the first one has no input; give each input's --config after it (and one "
+                              f"config for the others as CONFIG)")
+        common = leading
+    if all(c is None for c in own):
+        return sources, common
+    return sources, [common if c is None else c for c in own]
+
+
+def _check_inputs(config, sources: Sequence[Tuple], kinds: str) -> None:
+    """The usage errors of ``track``/``loop`` inputs, in the command line's words (``config``: as
+    :func:`_paired_inputs` returns it)."""
     if not sources:
         raise _UsageError(f"no input: give at least one {kinds}")
-    if config is None and not any(k == "euroc" for k, _ in sources):
-        raise _UsageError("no CONFIG given: a VINS config file is needed unless an --euroc folder "
-                          "provides sensor.yaml")
+    per = list(config) if isinstance(config, list) else [config] * len(sources)
+    for b, (src, c) in enumerate(zip(sources, per)):
+        if c is None and src[0] != "euroc":
+            raise _UsageError(f"no CONFIG given for input {b + 1} ({_flag(src)}): a VINS config file is needed "
+                              f"unless an --euroc folder provides sensor.yaml (give CONFIG, or --config FILE "
+                              f"after this input)")
 
 
 def _sharded() -> bool:
@@ -235,26 +305,31 @@ def _input_options(args: argparse.Namespace) -> Dict[str, Any]:
 
 
 def _resolved_config(config, sources, opt):
-    """The run's ``TrackerConfig`` (after the options are checked, so that a bad option is still
-    the first error), its settings printed on one line (rank 0 under ``torchrun``)."""
-    from .pipelines.inputs import resolve_config
+    """The run's config (after the options are checked, so that a bad option is still the first
+    error): one ``TrackerConfig`` for every input, or a list of one per input
+    (``pipelines.inputs.resolve_configs``), the settings printed on one line per distinct config,
+    with its streams when there are several (rank 0 under ``torchrun``)."""
+    from .pipelines.inputs import distinct_configs, resolve_configs
 
     opt.check()
-    cfg = resolve_config(config, sources, opt.camera)
+    cfgs = resolve_configs(config, sources, opt.camera)
+    groups = distinct_configs(cfgs)
     if _rank() == 0:
-        print(cfg.settings_line(), flush=True)
-    return cfg
+        for cfg, streams in groups:
+            where = f" (stream{'s' if len(streams) > 1 else ''} {', '.join(map(str, streams))})" if len(groups) > 1 else ""
+            print(cfg.settings_line() + where, flush=True)
+    return cfgs[0] if len(groups) == 1 else cfgs
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
     from .pipelines.track import TrackOptions, run_track
 
-    sources = args.sources or []
-    _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
+    sources, config = _paired_inputs(args)
+    _check_inputs(config, sources, "--euroc DIR, --bag PATH, --images DIR or --rig FILE")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
                        bag_imu=not args.no_bag_imu)
-    config = _resolved_config(args.config, sources, opt)
+    config = _resolved_config(config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
 
@@ -269,8 +344,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
 def _cmd_loop(args: argparse.Namespace) -> int:
     from .pipelines.loop import LoopOptions, run_loop
 
-    sources = args.sources or []
-    _check_inputs(args.config, sources, "--euroc DIR, --images DIR or --bag FILE")
+    sources, config = _paired_inputs(args)
+    _check_inputs(config, sources, "--euroc DIR, --images DIR, --bag FILE or --rig FILE")
     if args.vocabulary is None and not args.train_vocabulary:
         raise _UsageError("no vocabulary: give --vocabulary FILE (VINS's brief_k10L6.bin, or a .npz from "
                           "'torch-frontend vocabulary train') or --train-vocabulary")
@@ -281,7 +356,7 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
     )
-    config = _resolved_config(args.config, sources, opt)
+    config = _resolved_config(config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_loop_sharded
 
@@ -381,7 +456,8 @@ def _cmd_vocabulary(args: argparse.Namespace) -> int:
 
 
 class _SourceAction(argparse.Action):
-    """``--euroc/--bag/--images``: appended, in command-line order, as ``(kind, path)``."""
+    """``--euroc/--bag/--images``, ``--config`` and ``--rig``: appended, in command-line order, as
+    ``(kind, path)`` (kind ``config`` / ``rig`` for those two; :func:`_paired_inputs` pairs them)."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         items = list(getattr(namespace, self.dest, None) or [])
@@ -462,6 +538,15 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
                      help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
     src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
                      help="folder of images (timestamps from numeric names, or --fps)")
+    src.add_argument("--config", dest="sources", action=_SourceAction, const="config", metavar="FILE",
+                     help="VINS config of the input just before it (--euroc A --config a.yaml --euroc B "
+                          "--config b.yaml: each stream its own camera, size and settings); inputs without "
+                          "one use CONFIG, else an --euroc folder's own sensor.yaml. Before the first input "
+                          "it is CONFIG (then no input may have its own --config)")
+    src.add_argument("--rig", dest="sources", action=_SourceAction, const="rig", metavar="FILE",
+                     help="YAML list of inputs, each with its config and camera folder: - {euroc: DIR, "
+                          "config: FILE, camera: cam1} (also images: DIR, bag: PATH, topic: T, fps: F; paths "
+                          "relative to FILE; docs/rigs.md)")
     p.add_argument("--fps", type=_frame_rate, default=None, metavar="F",
                    help="frame rate of --images folders (timestamps i/F)")
     p.add_argument("--topic", default=None, metavar="T",
@@ -490,8 +575,9 @@ def _add_track(sub) -> None:
                "--out out/mh --max-frames 200",
     )
     track.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
-                       help="VINS config YAML (VINS-Mono or VINS-Fusion); optional with --euroc, whose "
-                            "sensor.yaml then gives the camera")
+                       help="VINS config YAML (VINS-Mono or VINS-Fusion) of every input without its own "
+                            "--config; optional with --euroc, whose own sensor.yaml then gives each "
+                            "folder's camera")
     _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
     rb = track.add_argument_group("ROS bag output (docs/ros.md)")
@@ -548,8 +634,9 @@ def _add_loop(sub) -> None:
                "MH_01_easy/mav0/state_groundtruth_estimate0/data.csv --out out/mh01_loop",
     )
     loop.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
-                      help="VINS config YAML (camera and camera-to-body extrinsic); optional with --euroc, "
-                           "whose sensor.yaml then gives both")
+                      help="VINS config YAML (camera and camera-to-body extrinsic) of every input without its "
+                           "own --config; optional with --euroc, whose own sensor.yaml then gives both (a shared "
+                           "map needs one extrinsic: inputs with different ones need --separate-graphs)")
     lsrc = _add_input_options(loop, "inputs (repeatable, at least one; one --poses per input)")
     lsrc.add_argument("--poses", action="append", metavar="FILE",
                       help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, or EuRoC "

@@ -35,7 +35,8 @@ Outputs in ``out``:
       ``mean_track_length``/``median_track_length`` (frames), ``seconds`` and ``frames_per_second``
       (whole loop: reading, tracking, recording; ``tracker_seconds``: the tracker calls alone),
       ``skipped_bad_frames`` and ``skipped`` (stream, source, reason), ``per_stream``, and the run's
-      ``config``, ``mode``, ``device``, ``inputs``.
+      ``config``, ``mode``, ``device``, ``inputs`` (the pipelines add each stream's ``config`` and
+      ``camera`` to its ``per_stream`` entry: ``pipelines.inputs.stream_config_entry``).
     * ``features_per_frame.png``, ``track_length_hist.png``, ``track_paths.png``: matplotlib (Agg)
       plots; ``track_paths.png`` draws each published track's path in the image (``u, v`` of its
       published frames; the first 4 streams), coloured by length: dots for a still camera, lines

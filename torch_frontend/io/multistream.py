@@ -12,6 +12,12 @@ Convention:
     untouched and reports nothing for it.
 
     Iteration stops when every stream has ended, or after ``max_steps`` steps.
+
+    Image sizes: one expected ``(H, W)`` for every stream, or one per stream (a rig or a mixed
+    batch: each stream checked against its own config's size). When a step's images differ in
+    size, ``Batch.images`` is one ``(B, 1, H, W)`` batch zero-padded at the bottom and right to the
+    largest ``H`` and ``W``, and ``Batch.sizes`` holds every stream's ``(H_b, W_b)`` (what
+    ``FeatureTracker.track(..., sizes=)`` takes); otherwise ``sizes`` is None.
 """
 
 from __future__ import annotations
@@ -38,6 +44,8 @@ class Batch:
         alive: ``(B,)`` bool tensor: the stream delivered a new frame this step.
         sources: per stream, the file / message of the frame.
         raw: per stream, the ``(H, W)`` uint8 numpy image (for drawing).
+        sizes: ``(B, 2)`` int64 numpy ``(H_b, W_b)`` per stream when the images differ in size
+            (``images`` is then padded; module docstring), else None.
     """
 
     step: int
@@ -47,6 +55,37 @@ class Batch:
     alive: torch.Tensor
     sources: List[str]
     raw: List[np.ndarray]
+    sizes: Optional[np.ndarray] = None
+
+
+def image_sizes(raw: Seq[np.ndarray]) -> Optional[np.ndarray]:
+    """``(B, 2)`` int64 ``(H_b, W_b)`` of ``raw`` when they differ in size, else None."""
+    hw = [tuple(int(x) for x in im.shape[:2]) for im in raw]
+    if all(h == hw[0] for h in hw[1:]):
+        return None
+    return np.asarray(hw, dtype=np.int64)
+
+
+def stack_images(raw: Seq[np.ndarray], out: Optional[np.ndarray] = None) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """``(B, H, W)`` uint8 of B ``(H_b, W_b)`` images (into ``out`` when given) and their sizes:
+    one size: stacked, sizes None; several: zero-padded at the bottom and right to the largest
+    (``image_sizes``)."""
+    sizes = image_sizes(raw)
+    if sizes is None:
+        return np.stack(raw, out=out), None
+    shape = (len(raw), int(sizes[:, 0].max()), int(sizes[:, 1].max()))
+    if out is None:
+        out = np.zeros(shape, dtype=np.uint8)
+    else:
+        out[...] = 0
+    for b, im in enumerate(raw):  # one copy per stream, not per pixel
+        out[b, : im.shape[0], : im.shape[1]] = im
+    return out, sizes
+
+
+def padded_shape(raw: Seq[np.ndarray]) -> Tuple[int, int, int]:
+    """``(B, H, W)`` of :func:`stack_images`'s batch of ``raw``."""
+    return (len(raw), max(int(im.shape[0]) for im in raw), max(int(im.shape[1]) for im in raw))
 
 
 def ns_to_seconds(stamps_ns: np.ndarray) -> np.ndarray:
@@ -61,8 +100,9 @@ class MultiStream:
 
     Args:
         sequences: the B sequences.
-        size: expected ``(H, W)`` of every image (the config's ``image_height, image_width``);
-            a frame of another size raises ``DataError`` naming it. ``None``: the first frame's.
+        size: expected ``(H, W)`` of every image (the config's ``image_height, image_width``),
+            or a sequence of one ``(H, W)`` per stream (each stream's config); a frame of another
+            size raises ``DataError`` naming it. ``None``: the first frame's, for every stream.
         max_steps: stop after this many steps (``None``: until every stream has ended).
 
     Raises (while iterating):
@@ -75,7 +115,16 @@ class MultiStream:
         if len(sequences) == 0:
             raise DataError("no input sequence given")
         self.sequences = list(sequences)
-        self.size = None if size is None else (int(size[0]), int(size[1]))
+        self.sizes: Optional[List[Tuple[int, int]]] = None  # one (H, W) per stream
+        self.size = None
+        if size is not None and len(size) and isinstance(size[0], (tuple, list, np.ndarray)):
+            if len(size) != len(self.sequences):
+                raise ValueError(f"size: expected one (H, W) per sequence ({len(self.sequences)}), got {len(size)}")
+            self.sizes = [(int(s[0]), int(s[1])) for s in size]
+            if all(s == self.sizes[0] for s in self.sizes):
+                self.size, self.sizes = self.sizes[0], None
+        elif size is not None:
+            self.size = (int(size[0]), int(size[1]))
         self.max_steps = None if max_steps is None else int(max_steps)
 
     @property
@@ -92,9 +141,14 @@ class MultiStream:
         """``(stream, source, reason)`` of every frame skipped so far."""
         return [(b, src, why) for b, s in enumerate(self.sequences) for src, why in s.skipped]
 
-    def _check(self, frame: Frame) -> None:
+    def _check(self, b: int, frame: Frame) -> None:
         h, w = frame.image.shape
-        if self.size is None:
+        if self.sizes is not None:
+            H, W = self.sizes[b]
+            if (h, w) != (H, W):
+                raise DataError(f"{frame.source}: image size {w}x{h} differs from the expected {W}x{H} of stream {b} "
+                                f"(its config's image_width x image_height)")
+        elif self.size is None:
             self.size = (h, w)
         elif (h, w) != self.size:
             raise DataError(
@@ -108,7 +162,8 @@ class MultiStream:
                          lambda b: len(self.sequences[b].skipped))
         for step, frames, alive in steps:
             raw = [f.image for f in frames]
-            images = torch.from_numpy(np.stack(raw)[:, None])
+            stacked, sizes = stack_images(raw)
+            images = torch.from_numpy(stacked[:, None])
             stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
             yield Batch(
                 step=step,
@@ -118,10 +173,11 @@ class MultiStream:
                 alive=torch.tensor(alive),
                 sources=[f.source for f in frames],
                 raw=raw,
+                sizes=sizes,
             )
 
 
-def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check: Callable[[Frame], None],
+def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check: Callable[[int, Frame], None],
              max_steps: Optional[int], skipped: Callable[[int], int]) -> Iterator[Tuple[int, List[Frame], List[bool]]]:
     """The steps of the module docstring's convention: ``(step, frames, alive)`` per step, ``frames``
     the B streams' current frames (a dead stream's last one), ``alive`` which streams delivered one.
@@ -132,7 +188,7 @@ def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check
         sequences: the B streams (for ``len`` and ``name`` in the error message).
         next_frame: ``b -> Frame | None``: stream ``b``'s next readable frame, ``None`` at its end
             (it raises ``DataError`` for a bad frame without ``skip_bad``).
-        check: called on every new frame (the size check).
+        check: ``(b, frame)``: called on every new frame of stream ``b`` (the size check).
         max_steps: stop after this many steps (``None``: until every stream has ended).
         skipped: ``b -> number of frames of stream b skipped as bad`` (for the error message).
 
@@ -156,7 +212,7 @@ def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check
                     raise DataError(f"{s.name}: no readable frame in the sequence ({len(s)} listed, "
                                     f"{skipped(b)} skipped as bad)")
                 continue
-            check(fr)
+            check(b, fr)
             last[b] = fr
             alive[b] = True
         if not any(alive):
@@ -164,4 +220,4 @@ def lockstep(sequences: Seq, next_frame: Callable[[int], Optional[Frame]], check
         yield step, list(last), alive  # every entry is set: a stream that never had a frame raised above
         step += 1
 
-__all__ = ["MultiStream", "Batch", "ns_to_seconds"]
+__all__ = ["MultiStream", "Batch", "image_sizes", "ns_to_seconds", "padded_shape", "stack_images"]

@@ -7,8 +7,9 @@
   a rendered revisiting sequence (``demo_sequence``). Its middle stages are ``loop_stages``.
 * ``vocabulary``: :func:`run_vocabulary_train` (:class:`VocabularyOptions`) and
   :func:`load_vocabulary` (the package's ``.npz``, VINS's ``.bin``, DBoW2 YAML).
-* shared: ``inputs`` (``resolve_config``, ``open_inputs`` for ``(kind, path)`` sources,
-  ``ArraySequence``), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
+* shared: ``inputs`` (``resolve_configs``: one config per source, each ``euroc`` source's own
+  ``sensor.yaml`` by default; ``open_inputs`` for ``(kind, path[, options])`` sources,
+  ``ArraySequence``), ``rig`` (``read_rig``: a rig file's inputs and their configs), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
   ``pad_ragged``, ``resolve_device``), ``prefetch`` (:class:`FrameStream`: ``MultiStream``'s
   batches with the frames decoded in DataLoader workers, ``InputOptions.workers``).
 * sharded over the ranks of a ``torch.distributed`` job (``torchrun``): ``sharded``
@@ -32,6 +33,8 @@ _EXPORTS = {
     "ArraySequence": "inputs",
     "open_inputs": "inputs",
     "resolve_config": "inputs",
+    "resolve_configs": "inputs",
+    "read_rig": "rig",
     "TrackOptions": "track",
     "run_track": "track",
     "track_streams": "track",

@@ -213,9 +213,25 @@ def _plot(r: Dict[str, Any]) -> bytes:
     return buf.getvalue()
 
 
+def _run_stream(folder: Path, stream: int) -> Dict[str, Any]:
+    """The ``name``, ``config`` and ``camera`` of stream ``stream`` of a ``track`` output folder (its
+    ``summary.json``'s ``per_stream`` entry, or a sharded run's ``stream<b>/summary.json``); ``{}``
+    when ``folder`` is not a run that names them (a bag, an older run)."""
+    for summary, b in ((folder / "summary.json", stream), (folder / f"stream{stream}" / "summary.json", 0)):
+        try:
+            per = json.loads(summary.read_text(encoding="utf-8")).get("per_stream") or []
+        except (OSError, ValueError, AttributeError):
+            continue
+        if b < len(per) and isinstance(per[b], dict) and "config" in per[b]:
+            return {k: per[b][k] for k in ("name", "config", "camera") if k in per[b]}
+    return {}
+
+
 def run_compare(reference, other, out, options: CompareOptions | None = None) -> Dict[str, Any]:
     """Compare the feature bag ``reference`` with ``other`` (a bag or a ``track`` output folder) and
-    write the report into the folder ``out`` (module docstring); returns the report.
+    write the report into the folder ``out`` (module docstring); returns the report (with
+    ``other_stream``: the compared stream's name, config and camera, when ``other`` is a ``track``
+    output folder whose summary names them).
 
     Raises:
         OptionError: bad options; DataError: unreadable inputs; OutputFolderError: ``out`` holds
@@ -236,6 +252,9 @@ def run_compare(reference, other, out, options: CompareOptions | None = None) ->
     oth = load_features(other_p, opt.stream, opt.num_cameras)
     r = compare_features(ref, oth, opt.tolerance)
     r = {"reference": str(reference), "other": str(other_p), "out": str(out), **r}
+    stream_info = _run_stream(Path(other), opt.stream)
+    if stream_info:  # a track run: the compared stream's name, config and camera (per_stream)
+        r["other_stream"] = stream_info
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     stage = StagedFolder(out, "compare")
     try:

@@ -51,7 +51,17 @@ import torch
 
 from ..errors import ConfigError, DataError
 from .common import InputOptions, OptionError, pad_ragged, progress_bar, resolve_device
-from .inputs import ArraySequence, Source, frames_to_read, open_inputs, resolve_config, stream_names
+from .inputs import (
+    ArraySequence,
+    Source,
+    config_label,
+    frames_to_read,
+    open_inputs,
+    resolve_configs,
+    stream_config_entry,
+    stream_names,
+    stream_sizes,
+)
 from .loop_stages import (
     KeyframeLog,
     as_trajectory,
@@ -64,7 +74,7 @@ from .loop_stages import (
     span,
     triangulate_keyframes,
 )
-from .track import TRACKER_MODES, tracked_batches
+from .track import TRACKER_MODES, make_tracker, tracked_batches
 
 __all__ = [
     "DEMO_OPTIONS",
@@ -81,6 +91,7 @@ __all__ = [
     "demo_sequence",
     "extrinsic_from_config",
     "run_loop",
+    "stream_extrinsics",
 ]
 
 PathLike = Union[str, Path]
@@ -259,18 +270,49 @@ def extrinsic_from_config(cfg) -> Tuple[torch.Tensor, torch.Tensor]:
     return torch.eye(3, dtype=_F64), torch.zeros(3, dtype=_F64)
 
 
+def stream_extrinsics(cfgs: Sequence[Any], opt: LoopOptions) -> Tuple[List[torch.Tensor], List[torch.Tensor]]:
+    """Every stream's camera-to-body ``(R_ic (3, 3), t_ic (3,))`` float64: its config's
+    (:func:`extrinsic_from_config`, read once per config) or ``opt.R_ic`` / ``opt.t_ic`` for all.
+
+    Raises:
+        OptionError: a shared map (``separate_graphs`` False) of streams whose configs give
+            different extrinsics: VINS's pose graph has one ``qic``/``tic`` (loop verification
+            maps both keyframes' cameras to their bodies with it), so such streams need one graph
+            each.
+    """
+    per: Dict[int, Tuple[torch.Tensor, torch.Tensor]] = {}
+    R_ics, t_ics = [], []
+    for c in cfgs:
+        if id(c) not in per:
+            R, t = extrinsic_from_config(c)
+            R = R if opt.R_ic is None else torch.as_tensor(opt.R_ic, dtype=_F64).reshape(3, 3)
+            t = t if opt.t_ic is None else torch.as_tensor(opt.t_ic, dtype=_F64).reshape(3)
+            per[id(c)] = (R, t)
+        R_ics.append(per[id(c)][0])
+        t_ics.append(per[id(c)][1])
+    if not opt.separate_graphs:
+        for b in range(1, len(cfgs)):
+            if not (torch.equal(R_ics[b], R_ics[0]) and torch.equal(t_ics[b], t_ics[0])):
+                raise OptionError("separate_graphs", f"separate_graphs: needed for these inputs (one pose graph per "
+                                  f"input): {cfgs[0].path} (input 1) and {cfgs[b].path} (input {b + 1}) give "
+                                  f"different camera-to-body extrinsics, but a shared map has one (VINS's pose "
+                                  f"graph: one qic/tic); or give configs with one extrinsic")
+    return R_ics, t_ics
+
+
 # ----------------------------------------------------------------------------------------------
 # the run
 
 
 @dataclass
 class _Inputs:
-    """What :func:`run_loop` opened and checked before the long part (one entry per stream)."""
+    """What :func:`run_loop` opened and checked before the long part (one entry per stream: its
+    config, camera-to-body extrinsic, sequence, ...)."""
 
-    cfg: Any
+    cfgs: List[Any]
     device: torch.device
-    R_ic: torch.Tensor
-    t_ic: torch.Tensor
+    R_ics: List[torch.Tensor]
+    t_ics: List[torch.Tensor]
     seqs: List[Any]
     names: List[str]
     trajs: List[Any]
@@ -301,8 +343,11 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
     """Loop-closure run on B image streams with their VIO poses (see the module docstring).
 
     Args:
-        config: ``TrackerConfig``, a VINS config path, or None (``sensor.yaml`` of the first
-            ``euroc`` source).
+        config: a ``TrackerConfig`` or a VINS config path for every source, None (each ``euroc``
+            source's own ``sensor.yaml``), or a list of one of these per source
+            (``inputs.resolve_configs``): each stream is tracked, triangulated (its extrinsic) and
+            described (its camera) with its own config; a shared map needs one extrinsic
+            (:func:`stream_extrinsics`).
         sources: one per stream, ``(kind, path)`` with kind ``euroc``/``images``/``bag`` or an
             ``io`` sequence (e.g. ``ArraySequence``).
         poses: one per stream, a trajectory file (TUM, VINS csv, EuRoC ground truth; read by
@@ -356,13 +401,18 @@ def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], be
     tracker step (a sharded run's heartbeat)."""
     logs, skipped, input_times, per_stream = _track(inp, opt, times, beat)
     t0 = _time.perf_counter()
-    tri = [triangulate_keyframes(log, inp.R_ic, inp.t_ic, opt.triangulation_chunk, opt.track_window)
-           for log in logs]
+    tri = [triangulate_keyframes(log, inp.R_ics[b], inp.t_ics[b], opt.triangulation_chunk, opt.track_window)
+           for b, log in enumerate(logs)]
     times["triangulation"] = _time.perf_counter() - t0
     t0 = _time.perf_counter()
-    cam_d = inp.cfg.camera.to(device=inp.device, dtype=_F64)
-    descs = [describe_keyframe_images(log.kf_images, tri[b][0], cam_d, inp.device, opt.describe_batch)
-             for b, log in enumerate(logs)]
+    cams: Dict[int, Any] = {}  # each stream's camera (one copy per distinct camera)
+    descs = []
+    for b, log in enumerate(logs):
+        cam = inp.cfgs[b].camera
+        if id(cam) not in cams:
+            cams[id(cam)] = cam.to(device=inp.device, dtype=_F64)
+        descs.append(describe_keyframe_images(log.kf_images, tri[b][0], cams[id(cam)], inp.device,
+                                              opt.describe_batch))
     times["description"] = _time.perf_counter() - t0
     return _Prepared(logs, skipped, tri, descs, input_times, per_stream)
 
@@ -426,11 +476,9 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     from .vocabulary import load_vocabulary as _load_vocabulary
 
     dev = resolve_device(opt.device)
-    cfg = resolve_config(config, sources, opt.camera)
-    R_ic, t_ic = extrinsic_from_config(cfg)
-    R_ic = R_ic if opt.R_ic is None else torch.as_tensor(opt.R_ic, dtype=_F64).reshape(3, 3)
-    t_ic = t_ic if opt.t_ic is None else torch.as_tensor(opt.t_ic, dtype=_F64).reshape(3)
-    seqs = open_inputs(sources, cfg, opt)
+    cfgs = resolve_configs(config, sources, opt.camera)
+    R_ics, t_ics = stream_extrinsics(cfgs, opt)
+    seqs = open_inputs(sources, cfgs, opt)
     names = stream_names(seqs)
     trajs = [as_trajectory(p, "poses") for p in poses]
     pose_names = [str(p) if not isinstance(p, tuple) else f"poses of {n}" for p, n in zip(poses, names)]
@@ -449,7 +497,7 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
             raise DataError(f"{pose_names[b]}: the poses ({span(tr.time.numpy())}) do not cover the images of "
                             f"input {b + 1} {names[b]} ({span(st)}, {st.size} images); are they this "
                             f"sequence's poses, with times in the same clock?")
-    return _Inputs(cfg, dev, R_ic, t_ic, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
+    return _Inputs(cfgs, dev, R_ics, t_ics, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
 
 
 def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
@@ -457,15 +505,14 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
     """Stages 1-2: track every stream and pick its keyframes; returns the logs, the number of
     skipped bad frames, the input pipeline's times (``workers``, ``decode_seconds``,
     ``input_wait_seconds``) and the skipped frames per stream."""
-    from ..tracker import FeatureTracker
     from .prefetch import FrameStream
 
     B = len(inp.seqs)
     logs = [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
                         opt.keyframe_angle, opt.keyframe_every) for b in range(B)]
-    stream = FrameStream(inp.seqs, size=(inp.cfg.image_height, inp.cfg.image_width), max_steps=opt.max_frames,
+    stream = FrameStream(inp.seqs, size=stream_sizes(inp.cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=inp.device.type == "cuda")
-    tracker = FeatureTracker(inp.cfg, num_streams=B, device=inp.device, mode=opt.tracker_mode)
+    tracker = make_tracker(inp.cfgs, inp.device, opt.tracker_mode)
     with progress_bar(opt.progress, frames_to_read(inp.seqs, opt.max_frames), "tracking", "frame") as bar:
         t0 = _time.perf_counter()
         for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar):
@@ -532,9 +579,11 @@ def _pose_graphs(inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: Lo
 
     B = len(logs)
     n_graphs = B if opt.separate_graphs else 1
-    cam_cpu = inp.cfg.camera.to(dtype=_F64)
-    graphs = [PoseGraph(cam_cpu, voc, mode=opt.mode, R_ic=inp.R_ic, t_ic=inp.t_ic, pnp_backend=opt.pnp_backend,
-                        generator=torch.Generator().manual_seed(opt.seed)) for _ in range(n_graphs)]
+    # graph g: stream g's camera and extrinsic (separate graphs), or the shared map's one extrinsic
+    # (stream_extrinsics checked they agree) with stream 0's camera (the graph keeps it for users)
+    graphs = [PoseGraph(inp.cfgs[g].camera.to(dtype=_F64), voc, mode=opt.mode, R_ic=inp.R_ics[g], t_ic=inp.t_ics[g],
+                        pnp_backend=opt.pnp_backend, generator=torch.Generator().manual_seed(opt.seed))
+              for g in range(n_graphs)]
     loaded = 0
     if opt.load_graph is not None:
         for g in graphs:
@@ -646,8 +695,8 @@ def _summary(inp: _Inputs, opt: LoopOptions, gr: _Graphs, ate: Dict[str, float],
         "mode": opt.mode,
         "tracker_mode": opt.tracker_mode,
         "device": str(inp.device),
-        "config": str(inp.cfg.path),
-        "extrinsic": {"R_ic": inp.R_ic.tolist(), "t_ic": inp.t_ic.tolist()},
+        "config": config_label(inp.cfgs),
+        "extrinsic": {"R_ic": inp.R_ics[0].tolist(), "t_ic": inp.t_ics[0].tolist()},
         "keyframe_rule": ({"every": opt.keyframe_every} if opt.keyframe_every is not None else
                           {"distance_m": opt.keyframe_distance, "angle_deg": opt.keyframe_angle}),
         "vocabulary": voc_info,
@@ -667,6 +716,8 @@ def _stream_summary(inp: _Inputs, gr: _Graphs, s: StreamRun) -> Dict[str, Any]:
         "ate_before": s.ate_before, "ate_after": s.ate_after,
         "poses": inp.pose_names[s.stream],
         "ground_truth": None if gt is None or isinstance(gt, tuple) else str(gt),
+        **stream_config_entry(inp.cfgs[s.stream]),
+        "extrinsic": {"R_ic": inp.R_ics[s.stream].tolist(), "t_ic": inp.t_ics[s.stream].tolist()},
     }
 
 

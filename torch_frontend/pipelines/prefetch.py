@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError
-from ..io.multistream import Batch, MultiStream, lockstep, ns_to_seconds
+from ..io.multistream import Batch, MultiStream, lockstep, ns_to_seconds, padded_shape, stack_images
 
 __all__ = ["FrameStream", "DEFAULT_PREFETCH"]
 
@@ -179,16 +179,19 @@ class FrameStream(MultiStream):
         while held:  # only if a worker ended early (cannot happen: every worker sees every stream end)
             yield heapq.heappop(held)[2]
 
-    def _stage(self, raw: List[np.ndarray], step: int) -> torch.Tensor:
-        """``(B, 1, H, W)`` uint8 images: a fresh tensor, or a pinned staging buffer."""
+    def _stage(self, raw: List[np.ndarray], step: int) -> Tuple[torch.Tensor, Optional[np.ndarray]]:
+        """``(B, 1, H, W)`` uint8 images (a fresh tensor, or a pinned staging buffer) and the
+        per-stream sizes of a padded batch of mixed sizes (``io.multistream.stack_images``)."""
         if not self.pin_memory:
-            return torch.from_numpy(np.stack(raw)[:, None])
-        shape = (len(raw), 1, *raw[0].shape)
+            stacked, sizes = stack_images(raw)
+            return torch.from_numpy(stacked[:, None]), sizes
+        B, H, W = padded_shape(raw)
+        shape = (B, 1, H, W)
         if not self._pinned or tuple(self._pinned[0].shape) != shape:
             self._pinned = [torch.empty(shape, dtype=torch.uint8).pin_memory() for _ in range(2)]
         buf = self._pinned[step % 2]  # two buffers: one may still be copying to the device
-        np.stack(raw, out=buf.numpy()[:, 0])
-        return buf
+        _, sizes = stack_images(raw, out=buf.numpy()[:, 0])
+        return buf, sizes
 
     # -- batches ---------------------------------------------------------------------------------
     def __iter__(self) -> Iterator[Batch]:
@@ -244,8 +247,10 @@ class FrameStream(MultiStream):
             for step, frames, alive in steps:
                 raw = [f.image for f in frames]
                 stamps = np.array([f.stamp_ns for f in frames], dtype=np.int64)
-                yield Batch(step=step, images=self._stage(raw, step), timestamps=torch.from_numpy(ns_to_seconds(stamps)),
-                            stamps_ns=stamps, alive=torch.tensor(alive), sources=[f.source for f in frames], raw=raw)
+                images, sizes = self._stage(raw, step)
+                yield Batch(step=step, images=images, timestamps=torch.from_numpy(ns_to_seconds(stamps)),
+                            stamps_ns=stamps, alive=torch.tensor(alive), sources=[f.source for f in frames], raw=raw,
+                            sizes=sizes)
         finally:
             close = getattr(rows, "close", None)
             if close is not None:

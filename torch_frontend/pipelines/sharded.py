@@ -84,9 +84,9 @@ def _inputs_text(names: Sequence[str]) -> str:
 
 
 def _source_name(src) -> str:
-    if isinstance(src, tuple):
-        return f"{src[0]}:{src[1]}"
-    return f"{getattr(src, 'kind', 'sequence')}:{getattr(src, 'name', src)}"
+    from .inputs import source_name
+
+    return source_name(src)
 
 
 def prepare_sharded_out(out, legacy: Sequence[str]) -> Path:
@@ -166,7 +166,7 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
     from ..distributed import Job, shard_indices
     from ..distributed.env import DEFAULT_TIMEOUT
     from ..outputs import LEGACY_OUTPUTS
-    from .inputs import resolve_config
+    from .inputs import resolve_configs
     from .track import TrackOptions, track_streams
 
     t_start = time.perf_counter()
@@ -177,7 +177,7 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
     dev = _rank_device(opt.device)
     opt = dataclasses.replace(opt, device=str(dev))
     opt.check()
-    cfg = resolve_config(config, sources, opt.camera)
+    cfgs = resolve_configs(config, sources, opt.camera)  # every input's, on every rank: errors before any work
     out = Path(out)
     from ..distributed import dist_env
 
@@ -193,23 +193,25 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
         def work():
             if not mine:
                 return None
-            return track_streams(cfg, [sources[i] for i in mine], [out / f"stream{i}" for i in mine], opt,
+            return track_streams([cfgs[i] for i in mine], [sources[i] for i in mine], [out / f"stream{i}" for i in mine],
+                                 opt,
                                  extra=extra, beat=job.beat)
 
         res = job.run(work, exit_code_of)
         gathered = job.gather({"rank": env.rank, "streams": mine, "result": res, "host": os.uname().nodename})
         if job.rank != 0:
             return None
-        summary, index = _merge_track(gathered, sources, cfg, opt, out, job, time.perf_counter() - t_start)
+        summary, index = _merge_track(gathered, sources, cfgs, opt, out, job, time.perf_counter() - t_start)
         _write_merged(out, "track-sharded", summary, index)
         return summary
 
 
-def _merge_track(gathered, sources, cfg, opt, out: Path, job, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:
+def _merge_track(gathered, sources, cfgs, opt, out: Path, job, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:
     """The merged ``summary.json`` (the one-process summary of all inputs) and ``index.json``."""
     import numpy as np
 
     from ..outputs import run_counts
+    from .inputs import config_label
 
     per: List[Dict[str, Any]] = []  # per input, in input order (ranks hold contiguous blocks)
     owner: List[int] = []
@@ -237,7 +239,7 @@ def _merge_track(gathered, sources, cfg, opt, out: Path, job, seconds: float) ->
         "workers": int(opt.workers),
         "decode_seconds": round(sum(r.get("decode_seconds", 0.0) for r in ranks), 6),
         "input_wait_seconds": round(sum(r.get("input_wait_seconds", 0.0) for r in ranks), 6),
-        "config": str(cfg.path),
+        "config": config_label(cfgs),
         "mode": opt.mode,
         "device": ranks[0].get("device", opt.device) if ranks else opt.device,
         "inputs": [s["inputs"][0] for s in sums],
@@ -333,7 +335,8 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
     (merged) summary on rank 0, None on the others; ``out=None`` writes nothing."""
     from ..distributed import Job, dist_env, shard_indices
     from ..distributed.env import DEFAULT_TIMEOUT
-    from .loop import LoopOptions, _check_arguments, _open_inputs, _prepare_streams
+    from .inputs import resolve_configs
+    from .loop import LoopOptions, _check_arguments, _open_inputs, _prepare_streams, stream_extrinsics
 
     t_start = time.perf_counter()
     opt = LoopOptions() if options is None else options
@@ -342,6 +345,9 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
     dev = _rank_device(opt.device)
     opt = dataclasses.replace(opt, device=str(dev))
     _check_arguments(sources, poses, gts, opt)
+    # every input's config (and the shared map's one extrinsic), on every rank: errors before any work
+    cfgs = resolve_configs(config, sources, opt.camera)
+    stream_extrinsics(cfgs, opt)
     if out is not None and not opt.separate_graphs:
         from ..loop.report import check_out_folder
 
@@ -374,7 +380,8 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
             if not mine:
                 return None
             times: Dict[str, float] = {}
-            inp = _open_inputs(config, [sources[i] for i in mine], [poses[i] for i in mine], [gts[i] for i in mine],
+            inp = _open_inputs([cfgs[i] for i in mine], [sources[i] for i in mine], [poses[i] for i in mine],
+                               [gts[i] for i in mine],
                                ropt, times, load_vocabulary=opt.separate_graphs)
             return inp, _prepare_streams(inp, ropt, times, beat=job.beat), times
 
@@ -412,8 +419,9 @@ def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Di
     if job.rank != 0:
         return None
     parts = [g["part"] for g in gathered if g["part"] is not None]
-    i0 = parts[0][0]
-    inp_all = _Inputs(i0.cfg, resolve_device(opt.device), i0.R_ic, i0.t_ic, [], [n for p in parts for n in p[0].names],
+    inp_all = _Inputs([c for p in parts for c in p[0].cfgs], resolve_device(opt.device),
+                      [r for p in parts for r in p[0].R_ics], [t for p in parts for t in p[0].t_ics], [],
+                      [n for p in parts for n in p[0].names],
                       [t for p in parts for t in p[0].trajs], [n for p in parts for n in p[0].pose_names], list(gts),
                       [t for p in parts for t in p[0].gt_trajs], prepared[0])
     preps = [p[1] for p in parts]
@@ -457,7 +465,8 @@ def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[s
         inp, prep, times = res
         done = []
         for j, g in enumerate(mine):
-            inp_b = _Inputs(inp.cfg, inp.device, inp.R_ic, inp.t_ic, [inp.seqs[j]], [inp.names[j]], [inp.trajs[j]],
+            inp_b = _Inputs([inp.cfgs[j]], inp.device, [inp.R_ics[j]], [inp.t_ics[j]], [inp.seqs[j]], [inp.names[j]],
+                            [inp.trajs[j]],
                             [inp.pose_names[j]], [inp.gts[j]], [inp.gt_trajs[j]], inp.vocabulary)
             sk = prep.skipped_per_stream[j]
             prep_b = _Prepared([prep.logs[j]], sk, [prep.tri[j]], [prep.descs[j]], prep.input_times, [sk])
@@ -537,6 +546,7 @@ def _merge_loop(per, opt, out, job, ranks, inputs, seconds: float) -> Tuple[Dict
         "shared_map": False,
         **{k: first[k] for k in ("mode", "tracker_mode", "device", "config", "extrinsic", "keyframe_rule",
                                  "vocabulary", "load_graph")},
+        "config": "; ".join(dict.fromkeys(p for s in sums for p in s["config"].split("; "))),
         "per_stream": per_stream,
         "workers": int(opt.workers),
         "decode_seconds": round(sum(i["decode_seconds"] for i in inputs), 6),

@@ -2,7 +2,10 @@
 one batched ``FeatureTracker``, the outputs written by ``outputs.RunRecorder``.
 
 Convention:
-    Sources are ``(kind, path)`` or ``io`` sequences (``pipelines.inputs``); the outputs
+    Sources are ``(kind, path[, options])`` or ``io`` sequences, each with its own config
+    (``pipelines.inputs``: one config for all, or one per source; a source without one uses its
+    own ``sensor.yaml``); streams of several sizes are tracked as one padded batch with their
+    sizes (``io.multistream``). The outputs
     (``features.csv``, ``features.npz``, ``summary.json``, two plots, ``tracks/``) are described
     in ``torch_frontend.outputs``. Times in the summary are seconds of wall time.
 """
@@ -15,11 +18,21 @@ from pathlib import Path
 from typing import Any, Dict, Iterator, List, Sequence, Tuple
 
 from .common import InputOptions, OptionError, progress_bar, resolve_device
-from .inputs import Source, frames_to_read, open_inputs, resolve_config, stream_names
+from .inputs import (
+    Source,
+    config_label,
+    frames_to_read,
+    open_inputs,
+    resolve_configs,
+    source_options,
+    stream_config_entry,
+    stream_names,
+    stream_sizes,
+)
 from .prefetch import FrameStream
 
-__all__ = ["DEMO_FLIGHT", "TrackOptions", "copy_imu", "demo_flight_inputs", "run_track", "track_streams",
-           "tracked_batches"]
+__all__ = ["DEMO_FLIGHT", "TrackOptions", "copy_imu", "demo_flight_inputs", "make_tracker", "run_track",
+           "track_streams", "tracked_batches"]
 
 TRACKER_MODES = ("mono", "fusion")
 
@@ -73,14 +86,16 @@ class TrackOptions(InputOptions):
 
 
 def copy_imu(rec, cfg, sources, seqs, opt: TrackOptions, streams=None) -> None:
-    """Copy the IMU of each input into the recorder's bags (``TrackOptions.bag_imu``); ``streams``:
-    the inputs of the recorder's streams (default: all, in order)."""
+    """Copy the IMU of each input into the recorder's bags (``TrackOptions.bag_imu``), on its
+    config's ``imu_topic`` (``cfg``: one config, or one per input); ``streams``: the inputs of the
+    recorder's streams (default: all, in order)."""
     if opt.bag is None or not opt.bag_imu:
         return
-    topic = cfg.imu_topic or "/imu0"
+    cfgs = list(cfg) if isinstance(cfg, (list, tuple)) else [cfg] * len(sources)
     for b, i in enumerate(range(len(sources)) if streams is None else streams):
         src = sources[i]
-        kind, path = src if isinstance(src, tuple) else (getattr(seqs[i], "kind", ""), getattr(seqs[i], "path", None))
+        topic = cfgs[i].imu_topic or "/imu0"
+        kind, path = src[:2] if isinstance(src, tuple) else (getattr(seqs[i], "kind", ""), getattr(seqs[i], "path", None))
         if path is not None:
             rec.copy_imu(b, kind, path, topic)
 
@@ -121,8 +136,10 @@ def tracked_batches(tracker, stream, device, bar=None) -> Iterator[Tuple[Any, An
         t1 = time.perf_counter()
         # non_blocking: from FrameStream's pinned staging buffers the copy is asynchronous (the
         # tracker's kernels are queued behind it on the same stream)
+        # a batch of mixed sizes is padded, with its sizes (io.multistream); one size: sizes None
+        sizes = getattr(batch, "sizes", None)
         frame = tracker.track(batch.images.to(device, non_blocking=cuda), batch.timestamps,
-                              active=batch.alive.to(device))
+                              active=batch.alive.to(device), **({} if sizes is None else {"sizes": sizes}))
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         yield batch, frame, time.perf_counter() - t1
@@ -134,9 +151,11 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     """Track ``sources`` as B streams and write the outputs into the folder ``out``.
 
     Args:
-        config: a ``TrackerConfig``, a VINS config path, or None (``sensor.yaml`` of the first
-            ``euroc`` source; see ``inputs.resolve_config``).
-        sources: ``[(kind, path)]`` (kind ``euroc``, ``bag``, ``images``) or ``io`` sequences.
+        config: a ``TrackerConfig`` or a VINS config path for every source, None (each ``euroc``
+            source's own ``sensor.yaml``), or a list of one of these per source
+            (``inputs.resolve_configs``): stream b is tracked with its own config.
+        sources: ``[(kind, path)]`` (kind ``euroc``, ``bag``, ``images``; ``(kind, path, options)``
+            with per-source reader options) or ``io`` sequences.
         out: output folder (created).
         options: :class:`TrackOptions` (default: all defaults).
 
@@ -148,7 +167,6 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         ``KeyboardInterrupt`` passes through after the temporaries are removed.
     """
     from ..outputs import RunRecorder
-    from ..tracker import FeatureTracker
 
     opt = TrackOptions() if options is None else options
     sources = list(sources)
@@ -156,11 +174,11 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         raise OptionError("sources", "sources: no input given (expected at least one (kind, path) or io Sequence)")
     opt.check()
     dev = resolve_device(opt.device)
-    cfg = resolve_config(config, sources, opt.camera)
-    seqs = open_inputs(sources, cfg, opt)
-    stream = FrameStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames,
+    cfgs = resolve_configs(config, sources, opt.camera)
+    seqs = open_inputs(sources, cfgs, opt)
+    stream = FrameStream(seqs, size=stream_sizes(cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
-    tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
+    tracker = make_tracker(cfgs, dev, opt.mode)
     steps = 0
     tracker_seconds = 0.0
     with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options()) as rec:
@@ -179,16 +197,29 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
             "steps": steps,
             "tracker_seconds": round(tracker_seconds, 6),
             **_input_times(stream, opt.workers),
-            "config": str(cfg.path),
+            "config": config_label(cfgs),
             "mode": opt.mode,
             "device": str(dev),
             "inputs": [_input_entry(src, s) for src, s in zip(sources, seqs)],
             "out": str(Path(out)),
         }
         summary = rec.summary(seconds, stream.skipped, extra=extra)
-        copy_imu(rec, cfg, sources, seqs, opt)
+        for e, c in zip(summary["per_stream"], cfgs):  # each stream's config and camera
+            e.update(stream_config_entry(c))
+        copy_imu(rec, cfgs, sources, seqs, opt)
         rec.write(summary)
     return summary
+
+
+def make_tracker(cfgs, device, mode: str):
+    """The batched ``FeatureTracker`` of B streams with these per-stream configs: one config
+    object for every stream is the homogeneous tracker (as one config broadcast to B), others are
+    per-stream configs (``FeatureTracker([cfg_0, ..., cfg_B-1])``; equal ones share a group)."""
+    from ..tracker import FeatureTracker
+
+    if all(c is cfgs[0] for c in cfgs):
+        return FeatureTracker(cfgs[0], num_streams=len(cfgs), device=device, mode=mode)
+    return FeatureTracker(list(cfgs), device=device, mode=mode)
 
 
 def _input_times(stream, workers: int) -> Dict[str, Any]:
@@ -204,7 +235,11 @@ def _stream_view(batch, frame, b: int):
 
     import torch
 
-    sub = type(batch)(step=batch.step, images=batch.images[b:b + 1], timestamps=batch.timestamps[b:b + 1],
+    images = batch.images[b:b + 1]
+    sizes = getattr(batch, "sizes", None)
+    if sizes is not None:  # a padded batch of mixed sizes: stream b's own (H, W), as its run alone sees it
+        images = images[..., : int(sizes[b][0]), : int(sizes[b][1])]
+    sub = type(batch)(step=batch.step, images=images, timestamps=batch.timestamps[b:b + 1],
                       stamps_ns=batch.stamps_ns[b:b + 1], alive=batch.alive[b:b + 1], sources=[batch.sources[b]],
                       raw=[batch.raw[b]])
     fields = {f.name: getattr(frame, f.name) for f in dataclasses.fields(frame)}
@@ -241,7 +276,6 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     import contextlib
 
     from ..outputs import RunRecorder
-    from ..tracker import FeatureTracker
 
     opt = TrackOptions() if options is None else options
     sources, outs = list(sources), list(outs)
@@ -251,12 +285,12 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         raise OptionError("sources", "sources: no input given (expected at least one (kind, path) or io Sequence)")
     opt.check()
     dev = resolve_device(opt.device)
-    cfg = resolve_config(config, sources, opt.camera)
-    seqs = open_inputs(sources, cfg, opt)
+    cfgs = resolve_configs(config, sources, opt.camera)
+    seqs = open_inputs(sources, cfgs, opt)
     names = stream_names(seqs)
-    stream = FrameStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames,
+    stream = FrameStream(seqs, size=stream_sizes(cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
-    tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
+    tracker = make_tracker(cfgs, dev, opt.mode)
     B = len(seqs)
     results: List[Dict[str, Any] | None] = [None] * B
     steps = 0
@@ -270,7 +304,7 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
             "steps": int(rec.frames[0]),
             "tracker_seconds": round(tracker_seconds, 6),
             **_input_times(stream, opt.workers),
-            "config": str(cfg.path),
+            "config": config_label([cfgs[b]]),
             "mode": opt.mode,
             "device": str(dev),
             "inputs": [_input_entry(sources[b], seqs[b])],
@@ -278,7 +312,8 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
             **(extra or {}),
         }
         summary = rec.summary(seconds, skipped, extra=info)
-        copy_imu(rec, cfg, sources, seqs, opt, streams=[b])
+        summary["per_stream"][0].update(stream_config_entry(cfgs[b]))
+        copy_imu(rec, cfgs, sources, seqs, opt, streams=[b])
         rec.write(summary)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
 
@@ -310,5 +345,6 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
 
 def _input_entry(source: Source, seq) -> Dict[str, Any]:
     """The summary's ``inputs`` entry of one source."""
-    kind, path = source if isinstance(source, tuple) else (seq.kind, seq.name)
-    return {"kind": kind, "path": str(path), "frames_listed": len(seq)}
+    kind, path = source[:2] if isinstance(source, tuple) else (seq.kind, seq.name)
+    own = source_options(source)  # a rig entry's camera / topic / fps
+    return {"kind": kind, "path": str(path), "frames_listed": len(seq), **own}
