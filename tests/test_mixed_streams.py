@@ -172,3 +172,38 @@ def test_mixed_errors_name_the_stream():
         _ = tr.params
     with pytest.raises(ValueError, match="timestamps: expected"):
         tr.track([torch.zeros(c.image_height, c.image_width, dtype=torch.uint8) for c in cfgs], [0.0, 1.0])
+
+
+def _focal(cam) -> str:
+    return "fx" if "fx" in cam.param_names else "mu"  # Kannala-Brandt: mu
+
+
+def _other_fx(cfg, scale):
+    cam = cfg.camera
+    p = {**cam.params_dict(), _focal(cam): cam.params_dict()[_focal(cam)] * scale}
+    return dataclasses.replace(cfg, camera=type(cam).from_params(p, width=cam.width, height=cam.height))
+
+
+@pytest.mark.parametrize("path", ["default", "capturable"])
+def test_rig_of_calibrations_is_one_group_with_a_camera_batch(path):
+    """Four cameras of one model and size with their own calibrations (a rig): one group, its camera
+    a CameraBatch, the homogeneous step's launches; each stream equals its own tracker."""
+    euroc = tf.load_config(REPO / "configs" / "euroc.yaml")
+    cfgs = [euroc] + [_other_fx(euroc, s) for s in (1.01, 0.98, 1.03)]
+    mixed = _run_equal(cfgs, capturable=path == "capturable")
+    assert not mixed.mixed and len(mixed.groups) == 1
+    assert isinstance(mixed.camera, tf.CameraBatch) and len(mixed.camera) == 4
+    with pytest.raises(AttributeError, match="per-stream configs"):
+        _ = mixed.config
+
+
+def test_rig_in_a_mixed_batch_groups_by_model_and_settings():
+    euroc = tf.load_config(REPO / "configs" / "euroc.yaml")
+    tum = tf.load_config(REPO / "configs" / "tum_vi.yaml")
+    cfgs = [euroc, tum, _other_fx(euroc, 1.02), _other_fx(tum, 0.99)]
+    tr = FeatureTracker(cfgs)
+    assert [s for s, _ in tr.groups] == [(0, 2), (1, 3)]
+    assert all(isinstance(m.camera, tf.CameraBatch) for _, m in tr.groups)
+    batch = tr.groups[0][1].camera
+    assert [batch[i].params_dict()["fx"] for i in (0, 1)] == \
+        [euroc.camera.params_dict()["fx"], euroc.camera.params_dict()["fx"] * 1.02]

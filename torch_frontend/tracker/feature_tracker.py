@@ -39,6 +39,7 @@ from .streams import (
     merge_frames,
     partition,
     split_images,
+    stream_cameras,
     stream_configs,
 )
 from .track_step import check_active, check_images, check_inputs, check_timestamps, step_impl
@@ -238,6 +239,8 @@ class FeatureTracker:
             self._groups = tuple(groups)
             self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
                                                  **kwargs) for g in groups)
+            for g, m in zip(groups, self._members):
+                m._use_stream_configs([configs[b] for b in g.streams])
             inv = inverse_order(groups)
             self._inverse = None if inv is None else torch.tensor(inv, dtype=torch.int64, device=self.device)
             self._params = None
@@ -247,7 +250,16 @@ class FeatureTracker:
         self._params = built[id(configs[0]), id(masks[0])].to(self.device)
         # mono: warns once per stream when its timestamps restart the clock at every step (clock.RestartWatch)
         self._restarts = RestartWatch(self.B, self.params.restart_gap) if self.params.mode == "mono" else None
+        self._use_stream_configs(configs)
         self.reset()
+
+    def _use_stream_configs(self, configs: Sequence[TrackerConfig]) -> None:
+        """The streams' own configs (one group: equal settings and camera models): their cameras,
+        one :class:`~torch_frontend.camera.CameraBatch` where the calibrations differ."""
+        self.configs = tuple(configs)
+        cam, cam1 = stream_cameras([c.camera for c in configs]), stream_cameras([c.camera1 for c in configs])
+        if cam is not configs[0].camera or cam1 is not configs[0].camera1:
+            self._params = dataclasses.replace(self._params, camera=cam, camera1=cam1).to(self.device)
 
     def _stream_masks(self, fisheye_mask) -> List[Optional[torch.Tensor]]:
         """``fisheye_mask`` per stream: None, one ``(H, W)`` mask for every stream, or a sequence of B
@@ -303,10 +315,13 @@ class FeatureTracker:
 
     @property
     def config(self) -> TrackerConfig:
-        """The streams' config (one for all); a mixed tracker has one per stream: ``configs[b]``."""
-        if self._groups is not None:
+        """The streams' config (one for all); a tracker of per-stream configs (a mixed one, or one
+        with per-stream calibrations) has one per stream: ``configs[b]``."""
+        first = self.configs[0]
+        if self._groups is not None or any(c is not first for c in self.configs[1:]) and \
+                getattr(self.params, "camera", None) is not first.camera:
             raise AttributeError("config: this tracker has per-stream configs; use tracker.configs[b]")
-        return self.configs[0]
+        return first
 
     # ------------------------------------------------------------------ read-only views
     @property
@@ -488,7 +503,7 @@ class FeatureTracker:
             plan, host = self._plan(state, check_timestamps(timestamps, self.B, "cpu"),
                                     check_active(active, self.B, "cpu"))
         img, t, arrived, r = check_inputs(state, self.params, images, timestamps, right, active,
-                                          config_name=f"the config {self.config.path}")
+                                          config_name=f"the config {self.configs[0].path}")
         if self._restarts is not None:  # host values only: no sync (clock.RestartWatch)
             self._restarts.observe(state, timestamps, active)
         return self._run(state, img, t, arrived, r, plan, host)
@@ -552,7 +567,7 @@ class FeatureTracker:
                 if m.mode == "mono":
                     raise ValueError("right: stereo images are only supported with mode='fusion'")
                 if m.params.camera1 is None:
-                    raise ValueError(f"right: streams {list(g.streams)}: the config {m.config.path} has no "
+                    raise ValueError(f"right: streams {list(g.streams)}: the config {m.configs[0].path} has no "
                                      f"cam1_calib (num_of_cam 2)")
                 rr = check_images(r, m.params, g.size, dev, "right", size=tuple(img.shape[-2:]))
             if m._restarts is not None:

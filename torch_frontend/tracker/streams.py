@@ -3,12 +3,15 @@
 Convention:
     A mixed batch is partitioned on the host, once, into **stream groups**: streams whose configs
     give equal :class:`TrackerParams` (every VINS key and constant: size, ``max_cnt``, ``min_dist``,
-    ``F_threshold``, ``F_method``, ``equalize``, ``fisheye``, ``freq``, ...) and equal cameras (model
-    and values; ``cam1`` too) share a group. Each group runs the homogeneous step unchanged (its own
-    kernels, its own compiled variants), so stream ``b`` of a mixed batch is exactly the one-stream
-    tracker of config ``b``: a stream's results never depend on the other streams of its step (the
-    property every kernel already keeps), whichever group they are in. Launches grow with the
-    number of groups, never with B.
+    ``F_threshold``, ``F_method``, ``equalize``, ``fisheye``, ``freq``, ...) and the same camera
+    models (``cam1`` too) share a group; their calibrations may differ (a group's camera is then a
+    :class:`~torch_frontend.camera.CameraBatch`, every stream lifted with its own parameters). Each
+    group runs the homogeneous step unchanged (its own kernels, its own compiled variants), so
+    stream ``b`` of a mixed batch is exactly the one-stream tracker of config ``b``: a stream's
+    results never depend on the other streams of its step (the property every kernel already
+    keeps), whichever group they are in. Launches grow with the number of groups (distinct sizes,
+    models and VINS settings), never with B nor with the number of calibrations; a rig of equal
+    cameras with their own calibrations is one group, a homogeneous tracker.
 
     Stream ``b``'s rows are row ``index[b]`` of its group; the merged :class:`FeatureFrame` is
     ``(B, K, ...)`` with ``K`` = the largest ``max_cnt``; a group with a smaller ``max_cnt`` fills
@@ -92,10 +95,33 @@ def camera_key(camera) -> Any:
     return type(camera).__name__, camera.extra_repr()
 
 
+def camera_model_key(camera) -> Any:
+    """What makes two cameras one computation: the model and its options (``undistort_iters``, ...);
+    the parameter values may differ (a :class:`~torch_frontend.camera.CameraBatch` holds them per
+    stream)."""
+    if camera is None:
+        return None
+    from ..camera.batch import model_options
+
+    return type(camera).__name__, tuple(sorted(model_options(camera).items()))
+
+
 def group_key(params, mask) -> Any:
     """Streams with equal keys share a group: equal params (the dataclass compares every field
-    but the cameras and the mask), equal cameras, the same fisheye mask object."""
-    return params, camera_key(params.camera), camera_key(params.camera1), None if mask is None else id(mask)
+    but the cameras and the mask: size and every VINS key), the same camera models (values may
+    differ: :func:`stream_cameras`), the same fisheye mask object."""
+    return params, camera_model_key(params.camera), camera_model_key(params.camera1), None if mask is None else id(mask)
+
+
+def stream_cameras(cameras: Sequence[Any]):
+    """One group's camera from its streams' cameras (one model): the camera itself where every
+    stream has the same calibration, else a :class:`~torch_frontend.camera.CameraBatch` of them
+    (each stream lifted with its own parameters, gradients to its own rows)."""
+    if cameras[0] is None or all(camera_key(c) == camera_key(cameras[0]) for c in cameras[1:]):
+        return cameras[0]
+    from ..camera.batch import CameraBatch
+
+    return CameraBatch.from_cameras(list(cameras))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -300,4 +326,5 @@ def inverse_order(groups: Sequence[StreamGroup]) -> Optional[List[int]]:
     return inv
 
 
-__all__ = ["GroupedState", "StreamGroup", "group_key", "merge_frames", "partition", "split_images", "stream_configs"]
+__all__ = ["GroupedState", "StreamGroup", "group_key", "merge_frames", "partition", "split_images", "stream_cameras",
+           "stream_configs"]
