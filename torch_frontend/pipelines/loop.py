@@ -526,53 +526,158 @@ def _vocabulary(voc, descs: List[List[Dict[str, torch.Tensor]]], opt: LoopOption
     return voc, info
 
 
+class _GraphStage:
+    """Stage 6, resumable: every keyframe into its pose graph, in time order (one stream after the
+    other), one :meth:`step` per keyframe; :meth:`state_dict` / :meth:`load_state_dict` stop it
+    after any step and go on bit for bit (a checkpoint of ``loop``)."""
+
+    STATE_VERSION = 1
+
+    def __init__(self, inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: LoopOptions,
+                 load_graph: bool = True):
+        from ..loop.pose_graph import PoseGraph
+
+        self.inp, self.logs, self.tri, self.descs, self.opt = inp, logs, tri, descs, opt
+        B = len(logs)
+        n_graphs = B if opt.separate_graphs else 1
+        cam_cpu = inp.cfg.camera.to(dtype=_F64)
+        self.graphs = [PoseGraph(cam_cpu, voc, mode=opt.mode, R_ic=inp.R_ic, t_ic=inp.t_ic,
+                                 pnp_backend=opt.pnp_backend, generator=torch.Generator().manual_seed(opt.seed))
+                       for _ in range(n_graphs)]
+        loaded = 0
+        if opt.load_graph is not None and load_graph:
+            for g in self.graphs:
+                loaded = g.load(opt.load_graph)
+        self.gr = _Graphs(self.graphs, [], [], {} if opt.keep_images else None,
+                          sum(len(log.kf_frames) for log in logs), loaded, 0, 0, 0.0)
+        self.owner: Dict[Tuple[int, int], int] = {}  # (graph, index) -> stream
+        self.b, self.k = 0, 0  # the next keyframe: stream b's k-th
+        self.idx: List[int] = []  # graph indices of stream b's keyframes so far
+        self.saved = [0] * n_graphs  # keyframes of each graph in earlier checkpoint chunks
+        self.positions: List[int] = []  # of each gr.loops record's result in its graph's loops
+
+    @property
+    def done(self) -> int:
+        """Keyframes added so far (of this run's, not the loaded ones)."""
+        return sum(len(log.kf_frames) for log in self.logs[:self.b]) + self.k
+
+    def step(self) -> bool:
+        """Add the next keyframe (closing its stream when it was the last); False when none is left."""
+        opt, gr = self.opt, self.gr
+        while self.b < len(self.logs) and self.k >= len(self.logs[self.b].kf_frames):
+            self._close_stream()
+        if self.b >= len(self.logs):
+            return False
+        b, k, log = self.b, self.k, self.logs[self.b]
+        g = b if opt.separate_graphs else 0
+        seq_id = 1 if opt.separate_graphs else b + 1
+        pts, Tk, Rk = self.tri[b]
+        kf = make_keyframe(log.times[log.kf_frames[k]], seq_id, Tk[k], Rk[k], pts[k], self.descs[b][k])
+        query = kf.num_points > MIN_POINTS_TO_QUERY
+        gr.not_querying += int(not query)
+        res = self.graphs[g].add_keyframe(kf, detect_loop=query)
+        self.owner[(g, kf.index)] = b
+        self.idx.append(kf.index)
+        if gr.images is not None:
+            gr.images[(g, kf.index)] = log.kf_images[k]
+        if res is not None:
+            old = self.graphs[g].keyframes[res.old_index]
+            gr.loops.append(LoopRecord(g, b, self.owner.get((g, res.old_index), -1), kf.time, old.time, res))
+            self.positions.append(len(self.graphs[g].loops) - 1)
+            gr.accepted += int(res.accepted)
+        self.k += 1
+        if self.k >= len(log.kf_frames):
+            self._close_stream()
+        return True
+
+    def _close_stream(self) -> None:
+        b, log, opt = self.b, self.logs[self.b], self.opt
+        pts = self.tri[b][0]
+        self.gr.streams.append(StreamRun(
+            name=log.name, stream=b, graph=b if opt.separate_graphs else 0, sequence=1 if opt.separate_graphs else b + 1,
+            frames=log.frames, published=len(log.times), uncovered=int(len(log.covered) - sum(log.covered)),
+            keyframe_times=np.array([log.times[f] for f in log.kf_frames]),
+            graph_indices=np.array(self.idx, dtype=np.int64),
+            num_points=np.array([p[0].shape[0] for p in pts], dtype=np.int64)))
+        self.b, self.k, self.idx = b + 1, 0, []
+
+    def run(self, bar=None, after_step=None) -> _Graphs:
+        """Every keyframe left; ``after_step()`` (or None) is called after each (a checkpoint's
+        chance). Returns the stage's results (``seconds``: this run's and the earlier runs')."""
+        t0 = _time.perf_counter() - self.gr.seconds
+        if bar is not None and self.done:
+            bar.update(self.done)
+        while self.step():
+            if bar is not None:
+                bar.set_postfix(loops=self.gr.accepted, refresh=False)
+                bar.update(1)
+            self.gr.seconds = _time.perf_counter() - t0
+            if after_step is not None:
+                after_step()
+        self.gr.seconds = _time.perf_counter() - t0
+        return self.gr
+
+    def state_dict(self, append: bool = False) -> Dict[str, Any]:
+        """The stage's state (``loop.state``): each graph's ``PoseGraph.state_dict`` (with
+        ``append``: its keyframes' points and descriptors only since the previous call's, a
+        chunk to keep with the earlier ones), where the stage stands, the candidates' owners and
+        the counts."""
+        since = self.saved if append else [0] * len(self.graphs)
+        graphs = [g.state_dict(since=s) for g, s in zip(self.graphs, since)]
+        self.saved = [len(g.keyframes) for g in self.graphs]
+        gr = self.gr
+        # a candidate is its graph's LoopResult: found again by its position there
+        records = [[r.graph, r.stream, r.old_stream, pos] for r, pos in zip(gr.loops, self.positions)]
+        return {"kind": "LoopGraphStage", "version": self.STATE_VERSION, "graphs": graphs, "b": self.b,
+                "k": self.k, "idx": list(self.idx), "owner": [[g, i, b] for (g, i), b in self.owner.items()],
+                "records": records, "streams_closed": len(gr.streams), "loaded": gr.loaded,
+                "not_querying": gr.not_querying, "accepted": gr.accepted, "seconds": gr.seconds}
+
+    def load_state_dict(self, states) -> None:
+        """Restore :meth:`state_dict` (or its chunks in order: the last gives all but the
+        graphs' keyframe chunks). ``StateError`` for a state of another version or graphs."""
+        from ..loop.state import StateError, check_state
+
+        chunks = list(states) if isinstance(states, (list, tuple)) else [states]
+        for c in chunks:
+            check_state(c, "LoopGraphStage", self.STATE_VERSION, ("graphs", "b", "k", "records"))
+            if len(c["graphs"]) != len(self.graphs):
+                raise StateError(f"LoopGraphStage state: {len(c['graphs'])} pose graphs, this run has "
+                                 f"{len(self.graphs)}")
+        st = chunks[-1]
+        for n, g in enumerate(self.graphs):
+            g.load_state_dict([c["graphs"][n] for c in chunks])
+        self.saved = [len(g.keyframes) for g in self.graphs]
+        gr = self.gr
+        gr.loaded, gr.not_querying, gr.accepted, gr.seconds = (int(st["loaded"]), int(st["not_querying"]),
+                                                                int(st["accepted"]), float(st["seconds"]))
+        self.owner = {(int(g), int(i)): int(b) for g, i, b in st["owner"]}
+        gr.loops, self.positions = [], [int(r[3]) for r in st["records"]]
+        for g, b, ob, pos in st["records"]:
+            res = self.graphs[g].loops[pos]
+            cur, old = self.graphs[g].keyframes[res.index], self.graphs[g].keyframes[res.old_index]
+            gr.loops.append(LoopRecord(int(g), int(b), int(ob), cur.time, old.time, res))
+        # the closed streams and the current one's keyframes so far, from the restored owners
+        self.b, self.k, self.idx = 0, 0, []
+        gr.streams = []
+        idx_of: Dict[int, List[Tuple[int, int]]] = {}  # stream -> its (graph, index) in adding order
+        for (g, i), b in sorted(self.owner.items()):
+            idx_of.setdefault(b, []).append((g, i))
+        for b in range(int(st["streams_closed"])):
+            self.idx = [i for _, i in idx_of.get(b, [])]
+            self._close_stream()
+        self.k, self.idx = int(st["k"]), [int(i) for i in st["idx"]]
+        if gr.images is not None:
+            for b, keys in idx_of.items():
+                for pos, key in enumerate(keys):
+                    gr.images[key] = self.logs[b].kf_images[pos]
+
+
 def _pose_graphs(inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: LoopOptions) -> _Graphs:
     """Stage 6: every keyframe into its pose graph, in time order (one stream after the other)."""
-    from ..loop.pose_graph import PoseGraph
-
-    B = len(logs)
-    n_graphs = B if opt.separate_graphs else 1
-    cam_cpu = inp.cfg.camera.to(dtype=_F64)
-    graphs = [PoseGraph(cam_cpu, voc, mode=opt.mode, R_ic=inp.R_ic, t_ic=inp.t_ic, pnp_backend=opt.pnp_backend,
-                        generator=torch.Generator().manual_seed(opt.seed)) for _ in range(n_graphs)]
-    loaded = 0
-    if opt.load_graph is not None:
-        for g in graphs:
-            loaded = g.load(opt.load_graph)
-    gr = _Graphs(graphs, [], [], {} if opt.keep_images else None, sum(len(log.kf_frames) for log in logs),
-                 loaded, 0, 0, 0.0)
-    owner: Dict[Tuple[int, int], int] = {}  # (graph, index) -> stream
-    with progress_bar(opt.progress, gr.keyframes, "loop closure", "kf") as bar:
-        t0 = _time.perf_counter()
-        for b, log in enumerate(logs):
-            g = b if opt.separate_graphs else 0
-            seq_id = 1 if opt.separate_graphs else b + 1
-            pts, Tk, Rk = tri[b]
-            idx = []
-            for k, f in enumerate(log.kf_frames):  # keyframes: one pose-graph step each
-                kf = make_keyframe(log.times[f], seq_id, Tk[k], Rk[k], pts[k], descs[b][k])
-                query = kf.num_points > MIN_POINTS_TO_QUERY
-                gr.not_querying += int(not query)
-                res = graphs[g].add_keyframe(kf, detect_loop=query)
-                owner[(g, kf.index)] = b
-                idx.append(kf.index)
-                if gr.images is not None:
-                    gr.images[(g, kf.index)] = log.kf_images[k]
-                if res is not None:
-                    old = graphs[g].keyframes[res.old_index]
-                    gr.loops.append(LoopRecord(g, b, owner.get((g, res.old_index), -1), kf.time, old.time, res))
-                    gr.accepted += int(res.accepted)
-                if bar is not None:
-                    bar.set_postfix(loops=gr.accepted, refresh=False)
-                    bar.update(1)
-            gr.streams.append(StreamRun(
-                name=log.name, stream=b, graph=g, sequence=seq_id, frames=log.frames, published=len(log.times),
-                uncovered=int(len(log.covered) - sum(log.covered)),
-                keyframe_times=np.array([log.times[f] for f in log.kf_frames]),
-                graph_indices=np.array(idx, dtype=np.int64),
-                num_points=np.array([p[0].shape[0] for p in pts], dtype=np.int64)))
-    gr.seconds = _time.perf_counter() - t0
-    return gr
+    stage = _GraphStage(inp, logs, tri, descs, voc, opt)
+    with progress_bar(opt.progress, stage.gr.keyframes, "loop closure", "kf") as bar:
+        return stage.run(bar)
 
 
 def _trajectories_and_ate(inp: _Inputs, gr: _Graphs, opt: LoopOptions) -> Dict[str, float]:
