@@ -65,7 +65,8 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
                 "camera": "--camera", "workers": "--workers"}
-_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format"}
+_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
+                "checkpoint_every": "--checkpoint-every", "resume": "--resume"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
 _LOOP_FLAGS = {
     **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
@@ -253,7 +254,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     _check_inputs(args.config, sources, "--euroc DIR, --bag PATH or --images DIR")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
-                       bag_imu=not args.no_bag_imu)
+                       bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume)
     config = _resolved_config(args.config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
@@ -503,7 +504,21 @@ def _add_track(sub) -> None:
     rb.add_argument("--bag-images", action="store_true", help="add /feature_tracker/feature_img")
     rb.add_argument("--no-bag-imu", action="store_true",
                     help="do not copy the input's IMU (the config's imu_topic; EuRoC imu0/data.csv) into the bag")
+    _add_checkpoint_options(track)
     track.set_defaults(func=_cmd_track, flags=_TRACK_FLAGS)
+
+
+def _add_checkpoint_options(p: argparse.ArgumentParser) -> None:
+    """``--checkpoint-every`` and ``--resume`` (``pipelines.checkpoint``)."""
+    ck = p.add_argument_group("checkpoints and resuming (long runs; docs/cli.md#checkpoints)")
+    ck.add_argument("--checkpoint-every", type=_non_negative_int, default=None, metavar="N",
+                    help="write a checkpoint every N frames, inside the run's hidden staging folder beside --out "
+                         "(default: every 500 frames or 60 s, whichever first; 0: none)")
+    ck.add_argument("--resume", action="store_true",
+                    help="continue the interrupted run of this --out (killed, preempted, Ctrl-C) from its last "
+                         "checkpoint; the finished outputs equal an uninterrupted run's. Refused, naming what "
+                         "differs, when the inputs, config or options differ; with no checkpoint to continue "
+                         "from, the run starts from the first frame (a note says so)")
 
 
 def _add_demo(sub) -> None:

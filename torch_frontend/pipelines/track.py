@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Sequence, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from .common import InputOptions, OptionError, progress_bar, resolve_device
 from .inputs import Source, frames_to_read, open_inputs, resolve_config, stream_names
@@ -43,6 +43,12 @@ class TrackOptions(InputOptions):
         bag_format: ``"ros1"`` / ``"ros2"``, overriding the name's form.
         bag_images: add ``/feature_tracker/feature_img``.
         bag_imu: copy each input's IMU into its bag (a bag's ``imu_topic``, a EuRoC ``imu0/data.csv``).
+        checkpoint_every: write a checkpoint (``pipelines.checkpoint``, inside the run's staging
+            folder) every this many frames (steps); None: every 500 frames or 60 s, whichever
+            first; 0: none.
+        resume: continue the interrupted run of the same ``out`` from its last checkpoint
+            (``ResumeError`` when it was another run: inputs, config or options); no checkpoint
+            to continue from: start from the first frame (with a ``DataWarning`` saying so).
     """
 
     mode: str = "mono"
@@ -51,10 +57,16 @@ class TrackOptions(InputOptions):
     bag_format: str | None = None
     bag_images: bool = False
     bag_imu: bool = True
+    checkpoint_every: Optional[int] = None
+    resume: bool = False
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
         super().check()
+        if self.checkpoint_every is not None and (not isinstance(self.checkpoint_every, int)
+                                                  or self.checkpoint_every < 0):
+            raise OptionError("checkpoint_every", f"checkpoint_every: expected an integer >= 0 (frames; 0: no "
+                                                  f"checkpoints), got {self.checkpoint_every!r}")
         if self.mode not in TRACKER_MODES:
             raise OptionError("mode", f"mode: expected mono or fusion, got {self.mode!r}")
         if self.bag_format not in (None, "ros1", "ros2"):
@@ -70,6 +82,13 @@ class TrackOptions(InputOptions):
     def recorder_options(self) -> Dict[str, Any]:
         """The bag arguments of ``outputs.RunRecorder``."""
         return {"bag": self.bag, "bag_format": self.bag_format, "bag_images": self.bag_images}
+
+    def output_options(self, device) -> Dict[str, Any]:
+        """The options that change a run's outputs (a checkpoint's fingerprint; not ``workers``,
+        ``progress`` nor the checkpoint interval), with the device's type."""
+        keep = ("mode", "max_frames", "camera", "fps", "topic", "skip_bad_frames", "write_tracks", "bag",
+                "bag_format", "bag_images", "bag_imu")
+        return {**{k: getattr(self, k) for k in keep}, "device": device.type}
 
 
 def copy_imu(rec, cfg, sources, seqs, opt: TrackOptions, streams=None) -> None:
@@ -110,14 +129,19 @@ def demo_flight_inputs(frames: int = DEMO_FLIGHT["frames"], size: Tuple[int, int
     return cfg, [ArraySequence(imgs, np.arange(len(imgs)) / float(rate), name="flight")]
 
 
-def tracked_batches(tracker, stream, device, bar=None) -> Iterator[Tuple[Any, Any, float]]:
+def tracked_batches(tracker, stream, device, bar=None, start: int = 0) -> Iterator[Tuple[Any, Any, float]]:
     """Run ``tracker`` over ``stream`` (an ``io.MultiStream``): yields ``(batch, frame, seconds)``
     per step, ``seconds`` being the tracker call alone (synchronised on CUDA); ``bar`` (tqdm or
-    None) advances by the alive streams after the caller has used the step."""
+    None) advances by the alive streams after the caller has used the step. ``start``: the steps
+    before it are read but not tracked (a resumed run: the tracker continues from a checkpoint)."""
     import torch
 
     cuda = device.type == "cuda"
     for batch in stream:
+        if batch.step < start:
+            if bar is not None:
+                bar.update(int(batch.alive.sum()))
+            continue
         t1 = time.perf_counter()
         # non_blocking: from FrameStream's pinned staging buffers the copy is asynchronous (the
         # tracker's kernels are queued behind it on the same stream)
@@ -149,6 +173,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     """
     from ..outputs import RunRecorder
     from ..tracker import FeatureTracker
+    from . import checkpoint as ckpt
 
     opt = TrackOptions() if options is None else options
     sources = list(sources)
@@ -161,24 +186,59 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     stream = FrameStream(seqs, size=(cfg.image_height, cfg.image_width), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
     tracker = FeatureTracker(cfg, num_streams=len(seqs), device=dev, mode=opt.mode)
+    fp = ckpt.fingerprint(cfg, [ckpt.input_fingerprint(src, s) for src, s in zip(sources, seqs)],
+                          opt.output_options(dev))
+    resumed = ckpt.resume_point(out, fp) if opt.resume else None
+    if opt.resume and resumed is None:
+        import warnings
+
+        from ..errors import DataWarning
+
+        warnings.warn(f"--resume: no checkpoint of an interrupted run of {out} found: starting from the first frame",
+                      DataWarning, stacklevel=2)
     steps = 0
-    tracker_seconds = 0.0
-    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options()) as rec:
+    # the times of the interrupted run(s) before the checkpoint, added to this run's
+    before = {"seconds": 0.0, "tracker_seconds": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}
+    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options(),
+                     adopt=None if resumed is None else resumed.stage,
+                     journal=opt.checkpoint_every != 0) as rec:
+        if resumed is not None:
+            p = resumed.payload
+            tracker.load_state_dict(p["tracker"])
+            rec.restore(p["recorder"], resumed.chunks)
+            steps = resumed.frames
+            before = dict(p["times"])
+            rec.keep_on_interrupt = True
+        checkpoints = ckpt.Checkpointer(rec.stage_path, fp, opt.checkpoint_every, resumed)
+        tracker_seconds = before["tracker_seconds"]
         t0 = time.perf_counter()
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
-            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
+            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar, start=steps):
                 tracker_seconds += step_seconds
                 rec.add(batch, frame)
                 steps += 1
+                if ckpt.kill_point("frame", steps):
+                    ckpt.kill_now()
+                if checkpoints.due(steps):
+                    times = {"seconds": before["seconds"] + time.perf_counter() - t0,
+                             "tracker_seconds": tracker_seconds,
+                             "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                             "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+                    checkpoints.save(steps, {"tracker": tracker.state_dict(), "recorder": rec.counters(),
+                                             "times": times}, rec.take_chunk())
+                    rec.keep_on_interrupt = True
         if dev.type == "cuda":
             import torch
 
             torch.cuda.synchronize(dev)
-        seconds = time.perf_counter() - t0
+        seconds = before["seconds"] + time.perf_counter() - t0
+        times = _input_times(stream, opt.workers)
+        times["decode_seconds"] = round(before["decode_seconds"] + stream.decode_seconds, 6)
+        times["input_wait_seconds"] = round(before["input_wait_seconds"] + stream.wait_seconds, 6)
         extra = {
             "steps": steps,
             "tracker_seconds": round(tracker_seconds, 6),
-            **_input_times(stream, opt.workers),
+            **times,
             "config": str(cfg.path),
             "mode": opt.mode,
             "device": str(dev),
