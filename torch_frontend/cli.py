@@ -74,7 +74,7 @@ _LOOP_FLAGS = {
     "load_graph": "--load-graph", "separate_graphs": "--separate-graphs", "mode": "--pose-graph",
     "tracker_mode": "--tracker-mode", "keyframe_distance": "--keyframe-distance",
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
-    "pnp_backend": "--pnp",
+    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
 }
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
@@ -281,6 +281,7 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         separate_graphs=args.separate_graphs, mode=args.pose_graph, tracker_mode=args.tracker_mode,
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
+        checkpoint_every=args.checkpoint_every, resume=args.resume,
     )
     config = _resolved_config(args.config, sources, opt)
     if _sharded():
@@ -606,6 +607,7 @@ def _add_loop(sub) -> None:
                       help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
     loop.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_threads(loop)
+    _add_checkpoint_options(loop)
     loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
 

@@ -412,6 +412,8 @@ _RAGGED = (("point_3d", "n_points", _F64, (3,)), ("point_2d_uv", "n_points", tor
            ("window_brief", "n_points", torch.int64, (4,)), ("keypoints", "n_keypoints", torch.float32, (2,)),
            ("keypoints_norm", "n_keypoints", _F64, (2,)), ("brief", "n_keypoints", torch.int64, (4,)))
 #: fields the pose graph moves (and the origin pose, small), stacked: (name, shape per keyframe)
+#: the keys of a ``keyframes_state`` that hold ``keyframes[since:]`` only (the append-only part)
+KEYFRAME_STATIC_KEYS = ("start", "time", "sequence", *(r[0] for r in _RAGGED), "n_points", "n_keypoints", "images")
 _POSES = (("origin_vio_T", (3,)), ("origin_vio_R", (3, 3)), ("vio_T", (3,)), ("vio_R", (3, 3)), ("T_w_i", (3,)),
           ("R_w_i", (3, 3)), ("loop_info", (8,)))
 

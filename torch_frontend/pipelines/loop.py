@@ -121,6 +121,13 @@ class LoopOptions(InputOptions):
         describe_batch: keyframes per batched description call.
         seed: seed of vocabulary sampling/training and of the pose graph's RANSAC.
         keep_images: keep the keyframe images in ``LoopRun.images`` (for plots of matches).
+        checkpoint_every: with ``out``, write a checkpoint (``pipelines.loop_checkpoint``, inside
+            the run's staging folder) every this many frames while tracking and every this many
+            keyframes while building the pose graph; None: every 500 or 60 s, whichever first;
+            0: none.
+        resume: continue the interrupted run of the same ``out`` from its last checkpoint
+            (``checkpoint.ResumeError`` when it was another run: inputs, poses, config, options);
+            no checkpoint to continue from: start from the first frame (a ``DataWarning`` says so).
     """
 
     vocabulary: Any = None
@@ -144,6 +151,8 @@ class LoopOptions(InputOptions):
     describe_batch: int = 8
     seed: int = 0
     keep_images: bool = False
+    checkpoint_every: Optional[int] = None
+    resume: bool = False
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
@@ -170,6 +179,11 @@ class LoopOptions(InputOptions):
                                                 f"got {self.keyframe_angle}")
         if not self.max_pose_gap > 0:
             raise OptionError("max_pose_gap", f"max_pose_gap: expected > 0, got {self.max_pose_gap}")
+        if self.checkpoint_every is not None and (isinstance(self.checkpoint_every, bool)
+                                                  or not isinstance(self.checkpoint_every, int)
+                                                  or self.checkpoint_every < 0):
+            raise OptionError("checkpoint_every", f"checkpoint_every: expected an integer >= 0 (frames; 0: no "
+                                                  f"checkpoints), got {self.checkpoint_every!r}")
 
 
 @dataclass
@@ -332,8 +346,15 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
         check_out_folder(out)
     times: Dict[str, float] = {}
     inp = _open_inputs(config, sources, poses, gts, opt, times)
-    prep = _prepare_streams(inp, opt, times)
-    return _finish(inp, prep, opt, times, t_start, out, extra_summary)
+    if out is None:
+        prep = _prepare_streams(inp, opt, times)
+        return _finish(inp, prep, opt, times, t_start, out, extra_summary)
+    from .loop_checkpoint import LoopCheckpoints, loop_fingerprint
+
+    fp = loop_fingerprint(inp.cfg, sources, inp.seqs, poses, gts, opt, inp.device)
+    with LoopCheckpoints(out, fp, opt.checkpoint_every, opt.resume) as ck:
+        prep = _prepare_streams(inp, opt, times, ck=ck)
+        return _finish(inp, prep, opt, times, t_start - ck.before, out, extra_summary, ck=ck)
 
 
 @dataclass
@@ -350,11 +371,14 @@ class _Prepared:
     skipped_per_stream: List[int] = field(default_factory=list)
 
 
-def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None) -> _Prepared:
+def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None, ck=None) -> _Prepared:
     """Stages 1-4: tracking (B streams in one batch), keyframes, triangulation, description. Each
     stream's results are its own (the stages treat streams independently). ``beat``: called per
-    tracker step (a sharded run's heartbeat)."""
-    logs, skipped, input_times, per_stream = _track(inp, opt, times, beat)
+    tracker step (a sharded run's heartbeat). ``ck``: the run's ``LoopCheckpoints`` (or None):
+    tracking checkpoints, and a resume past tracking takes stages 1-4 from its checkpoint."""
+    if ck is not None and ck.phase in ("prepared", "graphs"):
+        return _prepared_from_checkpoint(inp, opt, times, ck)
+    logs, skipped, input_times, per_stream = _track(inp, opt, times, beat, ck)
     t0 = _time.perf_counter()
     tri = [triangulate_keyframes(log, inp.R_ic, inp.t_ic, opt.triangulation_chunk, opt.track_window)
            for log in logs]
@@ -367,20 +391,46 @@ def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], be
     return _Prepared(logs, skipped, tri, descs, input_times, per_stream)
 
 
+def _prepared_from_checkpoint(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], ck) -> _Prepared:
+    """Stages 1-4 of a run resumed past them: the logs from every chunk, the points and
+    descriptors from the prepared chunk, the times and counts from its state."""
+    logs = _new_logs(inp, opt)
+    for b, log in enumerate(logs):
+        log.load_state_dict([c["logs"][b] for c in ck.chunks("tracking") + ck.chunks("prepared")])
+    chunk = ck.chunks("prepared")[0]
+    p = ck.prepared
+    times.clear()
+    times.update(p["times"])
+    return _Prepared(logs, int(p["skipped"]), chunk["tri"], chunk["descs"], dict(p["input_times"]),
+                     list(p["skipped_per_stream"]))
+
+
+def _new_logs(inp: _Inputs, opt: LoopOptions) -> List[KeyframeLog]:
+    return [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
+                        opt.keyframe_angle, opt.keyframe_every) for b in range(len(inp.seqs))]
+
+
 def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, float], t_start: float,
             out: Optional[PathLike], extra_summary: Optional[Dict[str, Any]] = None,
-            vocabulary: Optional[Tuple[Any, Dict[str, Any], float]] = None) -> LoopRun:
+            vocabulary: Optional[Tuple[Any, Dict[str, Any], float]] = None, ck=None) -> LoopRun:
     """Stages 5-6 and the outputs: vocabulary (``vocabulary``: an already trained one, its
     summary entry and training seconds), pose graphs, trajectories and ATE, the summary, ``out``
-    (None: nothing)."""
+    (None: nothing). ``ck``: the run's ``LoopCheckpoints`` (or None): the prepared checkpoint
+    after the vocabulary, the pose-graph stage's checkpoints, a resume of either; ``out`` is
+    written into its staging folder."""
     logs, tri, descs = prep.logs, prep.tri, prep.descs
-    if vocabulary is None:
+    if ck is not None and ck.phase in ("prepared", "graphs"):
+        voc, voc_info = _resumed_vocabulary(inp, ck)
+    elif vocabulary is None:
         voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
     else:
         voc, voc_info = vocabulary[0], dict(vocabulary[1])
         times.pop("vocabulary_load", None)
         times["vocabulary"] = vocabulary[2]
-    gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
+    if ck is None:
+        gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
+    else:
+        gr = _checkpointed_graphs(inp, prep, voc, voc_info, opt, times, ck)
     t_opt = sum(g.optimize_seconds for g in gr.graphs)
     times["recognition_verification"] = gr.seconds - t_opt
     times["optimisation"] = t_opt
@@ -396,8 +446,52 @@ def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, fl
         from ..loop.report import write_loop_outputs
 
         summary["out"] = str(Path(out))
-        write_loop_outputs(out, run)
+        write_loop_outputs(out, run, stage=None if ck is None else ck.stage)
     return run
+
+
+def _resumed_vocabulary(inp: _Inputs, ck):
+    """The vocabulary of a run resumed past stage 5: the trained one from the prepared chunk, or
+    the given one (loaded again: the fingerprint holds its file's contents)."""
+    from ..loop.vocabulary import Vocabulary
+
+    chunk = ck.chunks("prepared")[0]
+    info = dict(ck.prepared["vocabulary_info"])
+    if chunk["vocabulary"] is not None:
+        return Vocabulary.from_state_dict(chunk["vocabulary"]), info
+    return inp.vocabulary, info
+
+
+def _checkpointed_graphs(inp: _Inputs, prep: _Prepared, voc, voc_info, opt: LoopOptions, times: Dict[str, float],
+                         ck) -> _Graphs:
+    """Stage 6 with checkpoints (``pipelines.loop_checkpoint``): first the prepared checkpoint (a
+    fresh run, or one resumed while tracking), then one per ``checkpoint_every`` keyframes; a run
+    resumed in this stage restores it from its checkpoint."""
+    steps = int(ck.writer.frames)
+    if ck.phase in (None, "tracking"):
+        ck.prepared = {"times": dict(times), "skipped": prep.skipped, "input_times": dict(prep.input_times),
+                       "skipped_per_stream": list(prep.skipped_per_stream), "vocabulary_info": dict(voc_info),
+                       "steps": steps}
+        if ck.writer.enabled:
+            trained = inp.vocabulary is None
+            ck.save(steps, "prepared", {},
+                    {"logs": [log.state_dict(since=None if ck.log_marks is None else ck.log_marks[b])
+                               for b, log in enumerate(prep.logs)],
+                     "tri": prep.tri, "descs": prep.descs, "vocabulary": voc.state_dict() if trained else None})
+    steps = int(ck.prepared["steps"])
+    stage = _GraphStage(inp, prep.logs, prep.tri, prep.descs, voc, opt, load_graph=ck.phase != "graphs")
+    if ck.phase == "graphs":
+        chunks = ck.chunks("graphs")
+        stage.restore_parts(ck.payload["graph"], [c["keyframes"] for c in chunks])
+
+    def after_step():
+        ck.kill_point("keyframe", stage.done)
+        if ck.due(steps + stage.done):
+            payload, static = stage.checkpoint_parts()
+            ck.save(steps + stage.done, "graphs", {"graph": payload}, {"keyframes": static})
+
+    with progress_bar(opt.progress, stage.gr.keyframes, "loop closure", "kf") as bar:
+        return stage.run(bar, after_step)
 
 
 def _plural(n: int, word: str) -> str:
@@ -452,23 +546,40 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     return _Inputs(cfg, dev, R_ic, t_ic, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
 
 
-def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
+def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None, ck=None
            ) -> Tuple[List[KeyframeLog], int, Dict[str, Any], List[int]]:
     """Stages 1-2: track every stream and pick its keyframes; returns the logs, the number of
     skipped bad frames, the input pipeline's times (``workers``, ``decode_seconds``,
-    ``input_wait_seconds``) and the skipped frames per stream."""
+    ``input_wait_seconds``) and the skipped frames per stream. ``ck``: the run's
+    ``LoopCheckpoints`` (tracking checkpoints; a resumed run continues from its checkpoint)."""
     from ..tracker import FeatureTracker
     from .prefetch import FrameStream
 
     B = len(inp.seqs)
-    logs = [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
-                        opt.keyframe_angle, opt.keyframe_every) for b in range(B)]
+    logs = _new_logs(inp, opt)
     stream = FrameStream(inp.seqs, size=(inp.cfg.image_height, inp.cfg.image_width), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=inp.device.type == "cuda")
     tracker = FeatureTracker(inp.cfg, num_streams=B, device=inp.device, mode=opt.tracker_mode)
+    start = 0
+    before = {"tracking": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}  # the interrupted runs'
+    if ck is not None and ck.phase == "tracking":
+        tracker.load_state_dict(ck.payload["tracker"])
+        chunks = ck.chunks("tracking")
+        for b, log in enumerate(logs):
+            log.load_state_dict([c["logs"][b] for c in chunks])
+        start = ck.resumed.frames
+        before = dict(ck.payload["times"])
+    if ck is not None:
+        ck.log_marks = [log.mark() for log in logs]
+
+    def clocks(t0):
+        return {"tracking": before["tracking"] + _time.perf_counter() - t0,
+                "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+
     with progress_bar(opt.progress, frames_to_read(inp.seqs, opt.max_frames), "tracking", "frame") as bar:
         t0 = _time.perf_counter()
-        for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar):
+        for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar, start=start):
             alive = batch.alive.numpy().astype(bool)
             pub = fr.published.cpu().numpy().astype(bool) & alive
             valid = fr.valid.cpu().numpy()
@@ -483,7 +594,15 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
                     logs[b].add(float(ts[b]), ids[b][m], xy[b][m], uv[b][m], batch.raw[b])
             if beat is not None:
                 beat()
-    times["tracking"] = _time.perf_counter() - t0
+            if ck is not None:
+                steps = batch.step + 1
+                ck.kill_point("frame", steps)
+                if ck.due(steps):
+                    chunk = {"logs": [log.state_dict(since=m) for log, m in zip(logs, ck.log_marks)]}
+                    ck.save(steps, "tracking", {"tracker": tracker.state_dict(), "times": clocks(t0)}, chunk)
+                    ck.log_marks = [log.mark() for log in logs]
+    end = clocks(t0)
+    times["tracking"] = end["tracking"]
     for b, log in enumerate(logs):
         if not any(log.covered):
             raise DataError(f"{log.poses_name}: the poses ({span(log.traj.time.numpy())}) do not cover the images "
@@ -492,8 +611,8 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
         if not log.kf_frames:
             raise DataError(f"{log.name}: no keyframe (no published frame with tracked features inside the poses' "
                             f"time span {span(log.traj.time.numpy())})")
-    input_times = {"workers": int(opt.workers), "decode_seconds": round(stream.decode_seconds, 6),
-                   "input_wait_seconds": round(stream.wait_seconds, 6)}
+    input_times = {"workers": int(opt.workers), "decode_seconds": round(end["decode_seconds"], 6),
+                   "input_wait_seconds": round(end["input_wait_seconds"], 6)}
     per_stream = [sum(1 for k in stream.skipped if k[0] == b) for b in range(B)]
     return logs, len(stream.skipped), input_times, per_stream
 
@@ -632,6 +751,28 @@ class _GraphStage:
                 "k": self.k, "idx": list(self.idx), "owner": [[g, i, b] for (g, i), b in self.owner.items()],
                 "records": records, "streams_closed": len(gr.streams), "loaded": gr.loaded,
                 "not_querying": gr.not_querying, "accepted": gr.accepted, "seconds": gr.seconds}
+
+    def checkpoint_parts(self):
+        """:meth:`state_dict` (``append``) split for a checkpoint: ``(state, chunk)``, the chunk
+        holding the graphs' new keyframes' points and descriptors (written once, append-only),
+        the state everything else (rewritten each time)."""
+        from ..loop.keyframe import KEYFRAME_STATIC_KEYS
+
+        st = self.state_dict(append=True)
+        static = []
+        for g in st["graphs"]:
+            kst = g["keyframes"]
+            static.append({k: kst[k] for k in KEYFRAME_STATIC_KEYS})
+            g["keyframes"] = {k: v for k, v in kst.items() if k not in KEYFRAME_STATIC_KEYS}
+        return st, static
+
+    def restore_parts(self, state, chunks) -> None:
+        """Restore :meth:`checkpoint_parts`' last ``state`` and every ``chunk`` so far, in order."""
+        states = []
+        for static in chunks:  # one stage state per chunk: its keyframes, the rest of the last state
+            graphs = [{**g, "keyframes": {**g["keyframes"], **static[n]}} for n, g in enumerate(state["graphs"])]
+            states.append({**state, "graphs": graphs})
+        self.load_state_dict(states)
 
     def load_state_dict(self, states) -> None:
         """Restore :meth:`state_dict` (or its chunks in order: the last gives all but the
