@@ -203,3 +203,125 @@ def test_keyframe_log_chunks():
         log().load_state_dict(chunks[1:])
     with pytest.raises(StateError, match="keyframe_distance is 0.15 in the state but 0.3 here"):
         KeyframeLog("s", traj, "poses.csv", 0.5, 0.3, 10.0, None).load_state_dict(chunks)
+
+
+# ----------------------------------------------------------------------------------------------
+# `torch-frontend loop` SIGKILLed (the test hook), then --resume: the outputs of a run that never stopped
+
+#: the loop inputs' run: 16 steps (2 streams), 14 keyframes; with --checkpoint-every 3: tracking
+#: checkpoints 1-5 (steps 3 .. 15), the prepared one 6, pose-graph ones 7, 8, ... (every 3 keyframes)
+EVERY = 3
+LOOP_TIMING_KEYS = {"seconds", "times", "keyframes_per_second", "decode_seconds", "input_wait_seconds", "out"}
+DEADLINE = 120  # s: far above a run's time, so only a hang reaches it
+
+
+@pytest.fixture(scope="module")
+def loop_cli(tmp_path_factory):
+    """The small revisit render's ``loop`` arguments and an uninterrupted run's outputs."""
+    from tests._helpers import make_loop_inputs
+    from torch_frontend.cli import main
+
+    root = tmp_path_factory.mktemp("resume_loop")
+    args = [str(a) for a in make_loop_inputs(root)]
+    ref = root / "ref"
+    assert main(args + ["--out", str(ref)]) == 0
+    return args, ref
+
+
+def _files(d):
+    return sorted(p.relative_to(d) for p in d.rglob("*") if p.is_file())
+
+
+def assert_same_loop_outputs(ref, got) -> None:
+    """Every file byte-identical, ``summary.json`` up to its timing fields."""
+    import json
+
+    assert _files(ref) == _files(got)
+    for rel in _files(ref):
+        if rel.name == "summary.json":
+            a, b = (json.loads((d / rel).read_text()) for d in (ref, got))
+            assert {k: v for k, v in a.items() if k not in LOOP_TIMING_KEYS} == \
+                   {k: v for k, v in b.items() if k not in LOOP_TIMING_KEYS}, rel
+        else:
+            assert (ref / rel).read_bytes() == (got / rel).read_bytes(), rel
+
+
+def run_killed(args, out, kill_at: str, *extra) -> str:
+    """``torch-frontend loop args --out out --checkpoint-every 3`` in a subprocess that the test
+    hook SIGKILLs at ``kill_at``; returns the phase of the checkpoint it left."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+    from torch_frontend._atomic import stale_staging
+    from torch_frontend.pipelines.checkpoint import KILL_ENV, load_checkpoint
+
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO), **{KILL_ENV: kill_at})
+    p = subprocess.run([sys.executable, "-m", "torch_frontend", *args, "--out", str(out), "--checkpoint-every",
+                        str(EVERY), *extra], env=env, capture_output=True, text=True, timeout=DEADLINE)
+    assert p.returncode == -signal.SIGKILL, p.stderr
+    stages = stale_staging(out)
+    assert len(stages) == 1 and not out.exists()  # the outputs were never swapped in
+    return load_checkpoint(stages[0]).payload["phase"]
+
+
+def resume(args, out, *extra) -> int:
+    from torch_frontend.cli import main
+
+    return main(args + ["--out", str(out), "--checkpoint-every", str(EVERY), "--resume", *extra])
+
+
+@pytest.mark.parametrize("kill_at, phase", [
+    ("frame:7", "tracking"),  # while tracking, after the checkpoint at step 6
+    ("checkpoint:8", "graphs"),  # in the middle of a pose-graph checkpoint: the one before it is used
+    pytest.param("checkpoint:2", "tracking", marks=pytest.mark.slow),  # in the middle of a tracking one
+    pytest.param("checkpoint:6", "tracking", marks=pytest.mark.slow),  # in the middle of the prepared one
+    pytest.param("keyframe:5", "graphs", marks=pytest.mark.slow),  # while building the pose graph
+    pytest.param("keyframe:14", "graphs", marks=pytest.mark.slow),  # after the last keyframe: the outputs next
+])
+def test_loop_killed_then_resumed_equals_uninterrupted(loop_cli, tmp_path, kill_at, phase):
+    args, ref = loop_cli
+    out = tmp_path / "out"
+    assert run_killed(args, out, kill_at) == phase
+    assert resume(args, out) == 0
+    assert_same_loop_outputs(ref, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder left
+
+
+@pytest.mark.slow
+def test_loop_killed_twice(loop_cli, tmp_path):
+    """Killed while tracking, resumed and killed again in the pose-graph stage, resumed: the
+    chunks of both runs add up."""
+    args, ref = loop_cli
+    out = tmp_path / "out"
+    assert run_killed(args, out, "frame:4") == "tracking"
+    assert run_killed(args, out, "keyframe:10", "--resume") == "graphs"
+    assert resume(args, out) == 0
+    assert_same_loop_outputs(ref, out)
+
+
+def test_loop_resume_refused_for_another_run_and_start_over_without_it(loop_cli, tmp_path, capsys):
+    """A resume with other options or other poses is refused with one line naming what differs
+    (nothing touched); without --resume the run starts over and removes the checkpoint."""
+    from tests._helpers import assert_one_error_line
+    from torch_frontend.cli import main
+
+    args, ref = loop_cli
+    out = tmp_path / "out"
+    assert run_killed(args, out, "frame:7") == "tracking"
+    capsys.readouterr()
+    i = args.index("--keyframe-every")
+    other = args[:i + 1] + ["3"] + args[i + 2:]
+    assert resume(other, out) == 2
+    assert_one_error_line(capsys.readouterr().err, "keyframe_every differs", "(checkpoint: 2; this run: 3)")
+    poses = args[args.index("--poses") + 1]
+    moved = tmp_path / "vio0.csv"
+    moved.write_text(open(poses).read().replace("\n", "\n\n", 1))  # the same poses, another file
+    j = args.index(poses)
+    assert resume(args[:j] + [str(moved)] + args[j + 1:], out) == 2
+    assert_one_error_line(capsys.readouterr().err, "poses 1 differs")
+    assert main(args + ["--out", str(out)]) == 0  # no --resume: from the first frame
+    assert_same_loop_outputs(ref, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "vio0.csv"]

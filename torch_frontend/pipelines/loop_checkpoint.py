@@ -97,9 +97,10 @@ def loop_fingerprint(cfg, sources: Sequence[Any], seqs: Sequence[Any], poses: Se
                      opt, device) -> Dict[str, str]:
     """The run's ``checkpoint.fingerprint`` (module docstring)."""
     inputs = [ckpt.input_fingerprint(src, s) for src, s in zip(sources, seqs)]
-    inputs += [f"poses {_value_digest(p)}" for p in poses]
-    inputs += [f"ground truth {_value_digest(g)}" for g in gts]
     options: Dict[str, Any] = {}
+    for i, (p, g) in enumerate(zip(poses, gts)):
+        options[f"poses {i + 1}"] = _value_digest(p)
+        options[f"ground truth {i + 1}"] = _value_digest(g)
     for f in dataclasses.fields(opt):
         if f.name in _NOT_OUTPUTS:
             continue
