@@ -249,9 +249,9 @@ def test_killed_rank_fails_within_timeout_and_next_run_cleans_up(inputs, tmp_pat
     cfg, seqs = inputs["config"], inputs["seqs"]
     out = tmp_path / "dist"
     args = ["track", cfg, "--euroc", seqs[2], "--euroc", seqs[1], "--out", out, "--no-progress", "--timeout", 30]
-    # kill rank 1 once it is writing its outputs (its temporary folder exists)
+    # kill rank 1 once it is writing its outputs (its staging folder, beside out, exists)
     res = run_ranks(args, tmp_path / "logs", kill_rank=1,
-                    kill_when=lambda: any(p.name.startswith(".stream1.") for p in out.glob(".*")))
+                    kill_when=lambda: any(tmp_path.glob(".dist.rank1.*/stream1")))
     assert res[1].rc == -signal.SIGKILL and res[0].rc == 1, res
     line = res[0].err.strip().splitlines()[-1]
     assert line.startswith("torch-frontend: error: ") and "rank 1" in line and str(seqs[1]) in line
@@ -260,11 +260,11 @@ def test_killed_rank_fails_within_timeout_and_next_run_cleans_up(inputs, tmp_pat
     one = tmp_path / "one"
     run_track(cfg, [("euroc", seqs[2])], one, TrackOptions(progress=False))
     assert_same_output_set(one, out / "stream0")
-    assert [p for p in out.glob(".stream1.*")]  # the killed rank could not remove its temporary
+    assert list(tmp_path.glob(".dist.rank1.*"))  # the killed rank could not remove its staging folder
     # the next run removes it (its process is gone) and writes a complete set
     res = run_ranks(args[:-2], tmp_path / "logs2")
     assert [r.rc for r in res] == [0, 0], res
-    assert (out / "summary.json").is_file() and no_temporaries(out)
+    assert (out / "summary.json").is_file() and no_temporaries(out) and not list(tmp_path.glob(".dist.*"))
     assert_same_output_set(one, out / "stream0")
 
 

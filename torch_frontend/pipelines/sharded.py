@@ -89,10 +89,14 @@ def _source_name(src) -> str:
     return f"{getattr(src, 'kind', 'sequence')}:{getattr(src, 'name', src)}"
 
 
-def prepare_sharded_out(out, legacy: Sequence[str]) -> Path:
+def prepare_sharded_out(out, legacy: Sequence[str], resume: bool = False, inputs: Optional[int] = None) -> Path:
     """Check ``out`` for a sharded run and clear the previous job's outputs (module docstring);
     ``legacy``: what a ``stream<b>/`` folder may hold (the writer's ``LEGACY_OUTPUTS``). Returns
-    ``out``. Raises ``OutputFolderError`` (nothing touched) for anything else in ``out``."""
+    ``out``. Raises ``OutputFolderError`` (nothing touched) for anything else in ``out``.
+
+    ``resume`` (``--resume``, or a restart under torch elastic: ``pipelines.elastic``): the
+    ``stream<b>/`` folders of the ``inputs`` inputs stay (the interrupted job's finished ones; the
+    ranks replace the others as they finish them); the merged files go all the same."""
     from .._atomic import MARKER, OutputFolderError, check_replaceable, clean_stale
 
     out = Path(out)
@@ -124,6 +128,8 @@ def prepare_sharded_out(out, legacy: Sequence[str]) -> Path:
     for name in (SUMMARY, INDEX, MARKER):  # the summary first: it is what says "complete"
         (out / name).unlink(missing_ok=True)
     for p in streams:
+        if resume and inputs is not None and int(p.name[len("stream"):]) < inputs:
+            continue
         shutil.rmtree(p)
     for name in sorted(set(temporaries)):
         clean_stale(out / name)  # a killed job's; a live process's stay
@@ -145,9 +151,50 @@ def _backend() -> str:
     return str(dist.get_backend()) if dist.is_initialized() else "none (one process)"
 
 
-def _prepare(job, out: Path, legacy: Sequence[str]) -> None:
+def _prepare(job, out: Path, legacy: Sequence[str], resume: bool = False, inputs: Optional[int] = None) -> None:
     """Rank 0 prepares ``out`` while the others wait (a refusal fails the job on every rank)."""
-    job.run(lambda: prepare_sharded_out(out, legacy) if job.rank == 0 else None, exit_code_of, phase="prepare")
+    job.run(lambda: prepare_sharded_out(out, legacy, resume, inputs) if job.rank == 0 else None, exit_code_of,
+            phase="prepare")
+
+
+def _rank_stage(out: Path, job, opt, world_inputs: int, holder: List[Any]):
+    """The factory ``track_streams`` / the loop's ranks call with their fingerprint: this rank's
+    ``elastic.RankStage`` (the job's fingerprint: the rank's, the world size and the rank), kept in
+    ``holder`` for the end of the job."""
+    from .elastic import RankStage, resuming
+
+    def make(fp: Dict[str, str]):
+        fp = {**fp, "world size": str(job.world_size), "rank": str(job.rank), "job inputs": str(world_inputs)}
+        holder.append(RankStage(out, job.rank, fp, opt.checkpoint_every, resuming(opt.resume)))
+        return holder[-1]
+    return make
+
+
+def _work_with_stage(work, holder: List[Any]):
+    """``work`` whose rank stage (made inside it) is kept or removed as ``RankStage.stop`` says when
+    it raises."""
+    def run():
+        try:
+            return work()
+        except BaseException as exc:
+            for st in holder:
+                st.stop(exc)
+            raise
+    return run
+
+
+def _finish_job(job, holder: List[Any], merge) -> Any:
+    """Rank 0's ``merge()`` (the merged files) as the job's last phase, then every rank removes
+    its staging folder (the job is complete). Returns what ``merge`` returned on rank 0."""
+    box: Dict[str, Any] = {}
+
+    def phase():
+        if job.rank == 0:
+            box["result"] = merge()
+    job.run(phase, exit_code_of, phase="merge")
+    for st in holder:
+        st.close()
+    return box.get("result")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -183,26 +230,30 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
 
     env = dist_env()
     mine = list(shard_indices(len(sources), env.rank, env.world_size))
+    from .elastic import resuming
+
     with Job("track", _inputs_text([_source_name(sources[i]) for i in mine]),
              DEFAULT_TIMEOUT if timeout is None else timeout, device=dev) as job:
-        _prepare(job, out, LEGACY_OUTPUTS)
+        _prepare(job, out, LEGACY_OUTPUTS, resuming(opt.resume), len(sources))
         if env.rank != 0:
             opt = dataclasses.replace(opt, progress=False)
         extra = {"distributed": {"rank": env.rank, "world_size": env.world_size, "batch": mine}}
+        holder: List[Any] = []
 
         def work():
             if not mine:
                 return None
             return track_streams(cfg, [sources[i] for i in mine], [out / f"stream{i}" for i in mine], opt,
-                                 extra=extra, beat=job.beat)
+                                 extra=extra, beat=job.beat, stage=_rank_stage(out, job, opt, len(sources), holder))
 
-        res = job.run(work, exit_code_of)
+        res = job.run(_work_with_stage(work, holder), exit_code_of)
         gathered = job.gather({"rank": env.rank, "streams": mine, "result": res, "host": os.uname().nodename})
-        if job.rank != 0:
-            return None
-        summary, index = _merge_track(gathered, sources, cfg, opt, out, job, time.perf_counter() - t_start)
-        _write_merged(out, "track-sharded", summary, index)
-        return summary
+
+        def merge():
+            summary, index = _merge_track(gathered, sources, cfg, opt, out, job, time.perf_counter() - t_start)
+            _write_merged(out, "track-sharded", summary, index)
+            return summary
+        return _finish_job(job, holder, merge)
 
 
 def _merge_track(gathered, sources, cfg, opt, out: Path, job, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:

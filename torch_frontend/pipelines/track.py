@@ -283,7 +283,7 @@ def _on_cpu(frame):
 
 
 def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], options: TrackOptions | None = None,
-                  *, extra: Dict[str, Any] | None = None, beat=None) -> Dict[str, Any]:
+                  *, extra: Dict[str, Any] | None = None, beat=None, stage=None) -> Dict[str, Any]:
     """Track ``sources`` as B streams of one batched tracker, as :func:`run_track`, but write each
     stream's outputs into its own folder ``outs[b]``: the output set one ``run_track`` of that
     source alone writes (the tracker treats every stream on its own, so its files are identical),
@@ -294,6 +294,12 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     and a way to stop the run by raising). Returns ``{"streams": [per stream: {"summary",
     "lengths" (track lengths, int64 numpy)}], "steps", "seconds", "tracker_seconds",
     "decode_seconds", "input_wait_seconds", "device"}``.
+
+    ``stage`` (None, or a callable that takes the run's ``checkpoint.fingerprint`` and returns a
+    ``pipelines.elastic.RankStage``: a sharded run's rank): the streams are staged in it, with
+    checkpoints every ``options.checkpoint_every`` steps (default 500 or 60 s) and one as each
+    stream ends (it is finished: a resumed run does not redo it); a resumed stage continues from
+    its checkpoint (the finished streams' results from it, the others from its step).
 
     Raises:
         as :func:`run_track`; the streams already written stay, the others leave no output.
@@ -320,16 +326,52 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     B = len(seqs)
     results: List[Dict[str, Any] | None] = [None] * B
     steps = 0
-    tracker_seconds = 0.0
+    started = [False] * B
+    # the times of the interrupted run(s) before the checkpoint, added to this run's
+    before = {"seconds": 0.0, "tracker_seconds": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}
+    if stage is not None:
+        from . import checkpoint as ckpt
+
+        stage = stage(ckpt.fingerprint(cfg, [ckpt.input_fingerprint(src, sq) for src, sq in zip(sources, seqs)],
+                                       opt.output_options(dev)))
+    resumed = None if stage is None else stage.resumed
+    if resumed is not None:
+        p = resumed.payload
+        tracker.load_state_dict(p["tracker"])
+        results = [p["finished"].get(b) for b in range(B)]
+        started = list(p["started"])
+        steps = resumed.frames
+        before = dict(p["times"])
+    tracker_seconds = before["tracker_seconds"]
+    ended: List[int] = []  # streams finished since the last checkpoint
     t0 = time.perf_counter()
 
+    def times_now() -> Dict[str, float]:
+        return {"seconds": before["seconds"] + time.perf_counter() - t0, "tracker_seconds": tracker_seconds,
+                "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+
+    def checkpoint(recs) -> None:
+        ended.clear()
+        live = {b: r for b, r in enumerate(recs) if r is not None and results[b] is None}
+        stage.save(steps, {"tracker": tracker.state_dict(), "recorders": {b: r.counters() for b, r in live.items()},
+                           "finished": {b: r for b, r in enumerate(results) if r is not None},
+                           "started": list(started), "times": times_now()},
+                   {b: r.take_chunk() for b, r in live.items()})
+        for r in live.values():
+            r.keep_on_interrupt = True
+
     def finish(b: int, rec) -> None:
-        seconds = time.perf_counter() - t0
+        now = times_now()
+        seconds = now["seconds"]
         skipped = [(0, src, why) for sb, src, why in stream.skipped if sb == b]
+        times = _input_times(stream, opt.workers)
+        times["decode_seconds"] = round(now["decode_seconds"], 6)
+        times["input_wait_seconds"] = round(now["input_wait_seconds"], 6)
         info = {
             "steps": int(rec.frames[0]),
             "tracker_seconds": round(tracker_seconds, 6),
-            **_input_times(stream, opt.workers),
+            **times,
             "config": str(cfg.path),
             "mode": opt.mode,
             "device": str(dev),
@@ -341,13 +383,29 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         copy_imu(rec, cfg, sources, seqs, opt, streams=[b])
         rec.write(summary)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
+        ended.append(b)
+
+    def recorder(b: int):
+        if results[b] is not None:  # finished before the checkpoint this run continues from
+            return None
+        kw = {}
+        if stage is not None:
+            kw = {"adopt": stage.staging_of(Path(outs[b]).name), "journal": stage.writer.enabled}
+        return RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks, **opt.recorder_options(), **kw)
 
     with contextlib.ExitStack() as stack:
-        recs = [stack.enter_context(RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks,
-                                                    **opt.recorder_options())) for b in range(B)]
-        started = [False] * B
+        recs = [recorder(b) for b in range(B)]
+        for r in recs:
+            if r is not None:
+                stack.enter_context(r)
+        if resumed is not None:
+            chunks = resumed.chunks
+            for b, r in enumerate(recs):
+                if r is not None:
+                    r.restore(resumed.payload["recorders"][b], [c[b] for c in chunks if b in c])
+                    r.keep_on_interrupt = True
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
-            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
+            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar, start=steps):
                 tracker_seconds += step_seconds
                 if dev.type != "cpu":  # one copy per field, not one per stream
                     frame = _on_cpu(frame)
@@ -361,11 +419,25 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                 steps += 1
                 if beat is not None:
                     beat()
+                if stage is not None:
+                    from . import checkpoint as ckpt
+
+                    if ckpt.kill_point("frame", steps):
+                        ckpt.kill_now()
+                    # one as a stream ends (after the whole step: every recorder has it), so
+                    # that a resumed run does not redo it
+                    if stage.writer.due(steps) or (ended and stage.writer.enabled):
+                        checkpoint(recs)
         for b in range(B):
             if results[b] is None:
                 finish(b, recs[b])
-    return {"streams": results, "steps": steps, "seconds": round(time.perf_counter() - t0, 6),
-            "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers), "device": str(dev)}
+        if stage is not None and stage.writer.enabled and ended:
+            checkpoint(recs)
+    now = times_now()
+    return {"streams": results, "steps": steps, "seconds": round(now["seconds"], 6),
+            "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers),
+            "decode_seconds": round(now["decode_seconds"], 6), "input_wait_seconds": round(now["input_wait_seconds"], 6),
+            "device": str(dev)}
 
 
 def _input_entry(source: Source, seq) -> Dict[str, Any]:
