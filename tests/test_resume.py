@@ -113,7 +113,7 @@ def _resume(capsys, inputs, out: Path, *extra):
     pytest.param("frame:9", (), id="mono-frame9-after-stream-b-ended", marks=pytest.mark.slow),
     pytest.param("frame:6", ("--mode", "fusion", "--write-bag", "features_db3"), id="fusion-frame6-at-checkpoint-ros2bag",
                  marks=pytest.mark.slow),
-    pytest.param("checkpoint:1", ("--no-tracks",), id="mono-mid-checkpoint1-notracks", marks=pytest.mark.slow),
+    pytest.param("checkpoint:3", ("--no-tracks",), id="mono-mid-checkpoint3-notracks", marks=pytest.mark.slow),
 ])
 def test_resume_after_sigkill_is_byte_identical(capsys, inputs, references, tmp_path, at, extra):
     ref = references(*extra)
@@ -159,9 +159,10 @@ def test_resume_with_no_checkpoint_starts_from_the_first_frame(capsys, inputs, r
 
 
 @pytest.mark.slow
-def test_killed_before_the_first_checkpoint_starts_over(capsys, inputs, references, tmp_path):
+@pytest.mark.parametrize("at", ["frame:2", "checkpoint:1"])
+def test_killed_before_the_first_checkpoint_starts_over(capsys, inputs, references, tmp_path, at):
     out = tmp_path / "out"
-    _killed(inputs, out, "frame:2", "--checkpoint-every", EVERY)
+    _killed(inputs, out, at, "--checkpoint-every", EVERY)
     err = _resume(capsys, inputs, out)
     assert "starting from the first frame" in err
     assert_same_outputs(references(), out)
