@@ -826,6 +826,9 @@ def main(argv: List[str] | None = None) -> int:
         detail = getattr(exc, "detail", None)
         msg = (f"interrupted{' (SIGTERM)' if term else ''}: no partial output left (the output folder holds "
                f"its previous complete outputs, or this run's if it had finished writing them)")
+        if getattr(exc, "resumable", False):
+            msg = (f"interrupted{' (SIGTERM)' if term else ''}: the output folder holds its previous complete outputs; "
+                   f"this run's last checkpoint is kept: rerun the same command with --resume to continue from it")
         if detail:  # a sharded run: who had not finished (torchrun stops every rank when one dies)
             msg = (f"interrupted{' (SIGTERM)' if term else ''}: {detail}; no merged summary written (complete "
                    f"per-input outputs stay)")

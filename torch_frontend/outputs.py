@@ -236,6 +236,7 @@ class RunRecorder:
                 self._stage = None
                 self._bags = []
                 self._tmp_tracks = None
+                exc.resumable = True  # the CLI's message: rerun with --resume
             else:
                 self.abort()
         return False

@@ -25,7 +25,8 @@ Convention:
 
     Test hook: the environment variable ``TORCH_FRONTEND_TEST_KILL_AT`` = ``frame:<k>`` makes the
     run SIGKILL itself once frame (step) ``k`` is recorded, ``checkpoint:<n>`` in the middle of
-    writing its ``n``-th checkpoint (chunk written, ``state.pt`` half written), 1-based.
+    writing its ``n``-th checkpoint (chunk written, ``state.pt`` half written), 1-based;
+    ``term:<k>`` sends it SIGTERM once frame ``k`` is recorded.
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from .common import OptionError
 
 __all__ = ["CHECKPOINT_FOLDER", "DEFAULT_EVERY_FRAMES", "DEFAULT_EVERY_SECONDS", "FORMAT_VERSION", "KILL_ENV",
            "Checkpoint", "Checkpointer", "ResumeError", "fingerprint", "fingerprint_difference",
-           "input_fingerprint", "kill_now", "kill_point", "load_checkpoint", "resume_point"]
+           "frame_hook", "input_fingerprint", "kill_now", "kill_point", "load_checkpoint", "resume_point"]
 
 _STATE = "state.pt"
 _CHUNKS = "chunks"
@@ -121,6 +122,15 @@ def kill_point(event: str, n: int) -> bool:
 def kill_now() -> None:  # pragma: no cover - the process ends here
     os.kill(os.getpid(), signal.SIGKILL)
     time.sleep(60)
+
+
+def frame_hook(frames: int) -> None:
+    """The test hook after ``frames`` frames (steps) are recorded: ``frame:<k>`` SIGKILLs this
+    process, ``term:<k>`` sends it SIGTERM (a preemption's first signal)."""
+    if kill_point("frame", frames):
+        kill_now()
+    if kill_point("term", frames):
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 # ----------------------------------------------------------------------------------------------

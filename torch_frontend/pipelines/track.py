@@ -217,8 +217,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
                 tracker_seconds += step_seconds
                 rec.add(batch, frame)
                 steps += 1
-                if ckpt.kill_point("frame", steps):
-                    ckpt.kill_now()
+                ckpt.frame_hook(steps)
                 if checkpoints.due(steps):
                     times = {"seconds": before["seconds"] + time.perf_counter() - t0,
                              "tracker_seconds": tracker_seconds,

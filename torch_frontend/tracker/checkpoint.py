@@ -115,14 +115,18 @@ def load_tracker_state_dict(tracker, d: Dict[str, Any]) -> None:
     if d.get("version") != STATE_DICT_VERSION:
         raise ValueError(f"load_state_dict: state_dict version {d.get('version')!r}, this torch-frontend reads "
                          f"version {STATE_DICT_VERSION} only")
-    for key, mine in (("mode", tracker.mode), ("num_streams", int(tracker.B)), ("capacity", int(tracker.K)),
-                      ("dtype", str(tracker.dtype))):
+    def same(key: str, mine) -> None:
         if d.get(key) != mine:
             raise ValueError(f"load_state_dict: the state is of a tracker with {key} {d.get(key)!r}, this one has "
                              f"{mine!r}")
+
+    same("mode", tracker.mode)
+    same("num_streams", int(tracker.B))
     diff = _first_difference(d.get("config", {}), config_fingerprint(tracker.config))
     if diff is not None:
         raise ValueError(f"load_state_dict: the state is of another config: {diff}")
+    same("capacity", int(tracker.K))
+    same("dtype", str(tracker.dtype))
     try:
         spec = pytree.treespec_loads(d["treespec"])
         leaves = [x.to(tracker.device) if isinstance(x, torch.Tensor) else x for x in d["leaves"]]
