@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests._helpers import make_asl, small_config
+from tests._helpers import make_asl, make_loop_inputs, small_config
 from tests.conftest import REPO, sample_frames
 
 TORCHRUN = Path(sys.executable).with_name("torchrun")
@@ -128,5 +128,57 @@ def test_torchrun_without_restarts_fails_and_resume_continues(track_job, tmp_pat
     res = torchrun(args + ["--out", out, "--checkpoint-every", 2, "--resume"])
     assert res.returncode == 0, res.stderr
     assert "rank 1: --resume: resuming from its checkpoint at step 2" in res.stderr
+    assert_same_job_outputs(ref, out)
+    assert no_staging_left(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# loop
+
+
+@pytest.fixture(scope="module")
+def loop_job(tmp_path_factory):
+    """The small revisit render's two laps (rank 0: lap 1, rank 1: lap 2; 16 steps each) and the
+    one-process run's outputs (what the shared-map job writes)."""
+    from torch_frontend.cli import main
+
+    root = tmp_path_factory.mktemp("elastic_loop")
+    args = [str(a) for a in make_loop_inputs(root)]
+    ref = root / "ref"
+    assert main(args + ["--out", str(ref)]) == 0
+    return args, ref
+
+
+def test_torchrun_loop_rank_killed_once(loop_job, tmp_path):
+    """Shared map: rank 1 killed while tracking (after its checkpoint at step 4); restarted, both
+    ranks resume their tracking, rank 0 builds the graph: the one-process run's outputs."""
+    args, ref = loop_job
+    out = tmp_path / "out"
+    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=1, kill_at="frame:6", restarts=1)
+    assert res.returncode == 0, res.stderr
+    assert "rank 1: restart 1 of the job: resuming from its checkpoint at step 4" in res.stderr
+    assert _files(ref) == _files(out)
+    for rel in _files(ref):
+        if rel.name == "summary.json":
+            assert _untimed(json.loads((ref / rel).read_text())) == _untimed(json.loads((out / rel).read_text()))
+        else:
+            assert (ref / rel).read_bytes() == (out / rel).read_bytes(), rel
+    assert no_staging_left(out)
+
+
+@pytest.mark.slow
+def test_torchrun_loop_separate_graphs_finished_input_not_redone(loop_job, tmp_path):
+    """Separate graphs: rank 0 killed right after it wrote its input's ``stream0/`` and
+    checkpointed it; restarted, rank 0 keeps that folder and redoes nothing, rank 1 resumes from
+    its own checkpoint: ``out`` = the uninterrupted job's (``index.json`` and ``summary.json`` too)."""
+    args, _ = loop_job
+    args = args + ["--separate-graphs"]
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    res = torchrun(args + ["--out", ref])
+    assert res.returncode == 0, res.stderr
+    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="written:1", restarts=1)
+    assert res.returncode == 0, res.stderr
+    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 17 (1 of its inputs finished)" \
+        in res.stderr
     assert_same_job_outputs(ref, out)
     assert no_staging_left(out)

@@ -376,7 +376,7 @@ def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], be
     stream's results are its own (the stages treat streams independently). ``beat``: called per
     tracker step (a sharded run's heartbeat). ``ck``: the run's ``LoopCheckpoints`` (or None):
     tracking checkpoints, and a resume past tracking takes stages 1-4 from its checkpoint."""
-    if ck is not None and ck.phase in ("prepared", "graphs"):
+    if ck is not None and ck.past_tracking:
         return _prepared_from_checkpoint(inp, opt, times, ck)
     logs, skipped, input_times, per_stream = _track(inp, opt, times, beat, ck)
     t0 = _time.perf_counter()
@@ -419,7 +419,7 @@ def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, fl
     after the vocabulary, the pose-graph stage's checkpoints, a resume of either; ``out`` is
     written into its staging folder."""
     logs, tri, descs = prep.logs, prep.tri, prep.descs
-    if ck is not None and ck.phase in ("prepared", "graphs"):
+    if ck is not None and ck.past_tracking:
         voc, voc_info = _resumed_vocabulary(inp, ck)
     elif vocabulary is None:
         voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
@@ -450,6 +450,18 @@ def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, fl
     return run
 
 
+def save_prepared(ck, prep: _Prepared, times: Dict[str, float], extra: Dict[str, Any], vocabulary=None) -> None:
+    """The prepared checkpoint (``pipelines.loop_checkpoint``): stages 1-4 (and ``vocabulary``, a
+    trained one's ``state_dict``) done; ``extra``: entries kept with the times and counts."""
+    steps = int(ck.writer.frames)
+    ck.prepared = {"times": dict(times), "skipped": prep.skipped, "input_times": dict(prep.input_times),
+                   "skipped_per_stream": list(prep.skipped_per_stream), "steps": steps, **extra}
+    if ck.writer.enabled:
+        marks = ck.log_marks or [None] * len(prep.logs)
+        ck.save(steps, "prepared", {}, {"logs": [log.state_dict(since=m) for log, m in zip(prep.logs, marks)],
+                                        "tri": prep.tri, "descs": prep.descs, "vocabulary": vocabulary})
+
+
 def _resumed_vocabulary(inp: _Inputs, ck):
     """The vocabulary of a run resumed past stage 5: the trained one from the prepared chunk, or
     the given one (loaded again: the fingerprint holds its file's contents)."""
@@ -467,17 +479,9 @@ def _checkpointed_graphs(inp: _Inputs, prep: _Prepared, voc, voc_info, opt: Loop
     """Stage 6 with checkpoints (``pipelines.loop_checkpoint``): first the prepared checkpoint (a
     fresh run, or one resumed while tracking), then one per ``checkpoint_every`` keyframes; a run
     resumed in this stage restores it from its checkpoint."""
-    steps = int(ck.writer.frames)
-    if ck.phase in (None, "tracking"):
-        ck.prepared = {"times": dict(times), "skipped": prep.skipped, "input_times": dict(prep.input_times),
-                       "skipped_per_stream": list(prep.skipped_per_stream), "vocabulary_info": dict(voc_info),
-                       "steps": steps}
-        if ck.writer.enabled:
-            trained = inp.vocabulary is None
-            ck.save(steps, "prepared", {},
-                    {"logs": [log.state_dict(since=None if ck.log_marks is None else ck.log_marks[b])
-                               for b, log in enumerate(prep.logs)],
-                     "tri": prep.tri, "descs": prep.descs, "vocabulary": voc.state_dict() if trained else None})
+    if not ck.past_tracking:
+        save_prepared(ck, prep, times, {"vocabulary_info": dict(voc_info)},
+                      voc.state_dict() if inp.vocabulary is None else None)
     steps = int(ck.prepared["steps"])
     stage = _GraphStage(inp, prep.logs, prep.tri, prep.descs, voc, opt, load_graph=ck.phase != "graphs")
     if ck.phase == "graphs":
@@ -596,7 +600,7 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None, c
                 beat()
             if ck is not None:
                 steps = batch.step + 1
-                ck.kill_point("frame", steps)
+                ck.frame_hook(steps)
                 if ck.due(steps):
                     chunk = {"logs": [log.state_dict(since=m) for log, m in zip(logs, ck.log_marks)]}
                     ck.save(steps, "tracking", {"tracker": tracker.state_dict(), "times": clocks(t0)}, chunk)

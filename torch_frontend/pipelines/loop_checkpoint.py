@@ -29,9 +29,10 @@ Convention:
     ``Trajectory`` or ``Vocabulary`` object by its values), the config, and every option that
     changes the outputs (all but ``workers``, ``progress``, ``checkpoint_every``, ``resume``).
 
-    Test hooks (``checkpoint.KILL_ENV``): ``frame:<k>`` (after tracking frame k),
+    Test hooks (``checkpoint.KILL_ENV``): ``frame:<k>`` / ``term:<k>`` (after tracking frame k),
     ``checkpoint:<n>`` (inside the n-th checkpoint this process writes), ``keyframe:<k>`` (after
-    the k-th keyframe added to the graphs).
+    the k-th keyframe added to the graphs), ``written:<n>`` (a sharded run with separate graphs:
+    after a rank wrote its n-th input and checkpointed it).
 """
 
 from __future__ import annotations
@@ -140,6 +141,20 @@ class LoopCheckpoints:
         self.stage = StagedFolder(out, "loop", LEGACY_OUTPUTS,
                                   adopt=None if self.resumed is None else self.resumed.stage)
         self.writer = ckpt.Checkpointer(self.stage.path, fingerprint, every, self.resumed)
+        self.rank_stage = None
+        self._start()
+
+    @classmethod
+    def of_rank(cls, rank_stage) -> LoopCheckpoints:
+        """The checkpoints of one rank of a sharded ``loop`` (stages 1-4 of its inputs, and with
+        separate graphs its finished inputs), in its ``elastic.RankStage``; no staging of ``out``
+        (``stage`` is None)."""
+        self = cls.__new__(cls)
+        self.resumed, self.stage, self.writer, self.rank_stage = rank_stage.resumed, None, rank_stage.writer, rank_stage
+        self._start()
+        return self
+
+    def _start(self) -> None:
         self.keep_on_interrupt = self.resumed is not None
         p = {} if self.resumed is None else self.resumed.payload
         self.phase: Optional[str] = p.get("phase")
@@ -159,6 +174,11 @@ class LoopCheckpoints:
     def payload(self) -> Dict[str, Any]:
         return {} if self.resumed is None else self.resumed.payload
 
+    @property
+    def past_tracking(self) -> bool:
+        """Whether the resumed checkpoint is past stages 1-4 (they come from it)."""
+        return self.phase not in (None, "tracking")
+
     def seconds(self) -> float:
         """The run's seconds so far: the interrupted runs' and this one's."""
         return self.before + time.perf_counter() - self.t0
@@ -173,18 +193,29 @@ class LoopCheckpoints:
         self.writer.save(counter, {**payload, "phase": phase, "seconds": self.seconds(), "prepared": self.prepared},
                          {**chunk, "phase": phase})
         self.keep_on_interrupt = True
+        if self.rank_stage is not None:
+            self.rank_stage.keep = True
 
     @staticmethod
     def kill_point(event: str, n: int) -> None:
-        """The test hook (``checkpoint.KILL_ENV``)."""
+        """The test hook (``checkpoint.KILL_ENV``) at ``event`` number ``n``."""
         if ckpt.kill_point(event, n):
             ckpt.kill_now()
+
+    @staticmethod
+    def frame_hook(frames: int) -> None:
+        """The test hook after tracking frame (step) ``frames`` (``checkpoint.frame_hook``)."""
+        ckpt.frame_hook(frames)
 
     # -- the staging folder -----------------------------------------------------------------------
     def __enter__(self) -> LoopCheckpoints:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc_type is not None and not (self.keep_on_interrupt and issubclass(exc_type, KeyboardInterrupt)):
+        if exc_type is None:
+            return False
+        if self.keep_on_interrupt and issubclass(exc_type, KeyboardInterrupt):
+            exc.resumable = True  # the CLI's message: rerun with --resume
+        else:
             self.stage.abort()
         return False

@@ -384,7 +384,9 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
     (merged) summary on rank 0, None on the others; ``out=None`` writes nothing."""
     from ..distributed import Job, dist_env, shard_indices
     from ..distributed.env import DEFAULT_TIMEOUT
-    from .loop import LoopOptions, _check_arguments, _open_inputs, _prepare_streams
+    from .elastic import resuming
+    from .loop import LoopOptions, _check_arguments, _open_inputs, _prepare_streams, save_prepared
+    from .loop_checkpoint import LoopCheckpoints, loop_fingerprint
 
     t_start = time.perf_counter()
     opt = LoopOptions() if options is None else options
@@ -410,7 +412,7 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
             if out is not None and opt.separate_graphs:
                 from ..loop.report import LEGACY_OUTPUTS
 
-                prepare_sharded_out(out, LEGACY_OUTPUTS)
+                prepare_sharded_out(out, LEGACY_OUTPUTS, resuming(opt.resume), len(sources))
             voc = None
             if opt.vocabulary is not None and not opt.separate_graphs:  # the graph's rank loads it
                 from ..loop.vocabulary import Vocabulary
@@ -420,19 +422,32 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
             return voc, time.perf_counter() - t0
 
         prepared = job.run(prepare, exit_code_of, phase="prepare")
+        holder: List[Any] = []
 
         def work():
             if not mine:
                 return None
             times: Dict[str, float] = {}
-            inp = _open_inputs(config, [sources[i] for i in mine], [poses[i] for i in mine], [gts[i] for i in mine],
-                               ropt, times, load_vocabulary=opt.separate_graphs)
-            return inp, _prepare_streams(inp, ropt, times, beat=job.beat), times
+            my_poses, my_gts = [poses[i] for i in mine], [gts[i] for i in mine]
+            inp = _open_inputs(config, [sources[i] for i in mine], my_poses, my_gts, ropt, times,
+                               load_vocabulary=opt.separate_graphs)
+            ck = None
+            if out is not None:  # the rank's checkpoints in its staging folder beside out
+                fp = loop_fingerprint(inp.cfg, [sources[i] for i in mine], inp.seqs, my_poses, my_gts, ropt, dev)
+                ck = LoopCheckpoints.of_rank(_rank_stage(Path(out), job, opt, len(sources), holder)(fp))
+            prep = _prepare_streams(inp, ropt, times, beat=job.beat, ck=ck)
+            if ck is not None and not ck.past_tracking:
+                save_prepared(ck, prep, times, {})
+            return inp, prep, times, ck
 
-        res = job.run(work, exit_code_of)
+        res = job.run(_work_with_stage(work, holder), exit_code_of)
         if opt.separate_graphs:
-            return _separate_graphs(job, res, mine, opt, ropt, out, t_start)
-        return _shared_map(job, res, mine, prepared, gts, opt, out, t_start)
+            summary = _separate_graphs(job, res, mine, opt, ropt, out, t_start, holder)
+        else:
+            summary = _shared_map(job, res, mine, prepared, gts, opt, out, t_start)
+        for st in holder:  # the job is complete
+            st.close()
+        return summary
 
 
 def _shareable(inp, prep, keep_images: bool):
@@ -457,7 +472,7 @@ def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Di
 
     payload = None
     if res is not None:
-        inp, prep, times = res
+        inp, prep, times, _ = res
         payload = (*_shareable(inp, prep, opt.keep_images), times)
     gathered = job.gather({"rank": job.rank, "streams": mine, "host": os.uname().nodename, "part": payload})
     if job.rank != 0:
@@ -484,8 +499,10 @@ def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Di
     return run.summary
 
 
-def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[str, Any]]:
-    """One graph per input on its rank (``out/stream<b>/``); rank 0 merges the summaries."""
+def _separate_graphs(job, res, mine, opt, ropt, out, t_start, holder=()) -> Optional[Dict[str, Any]]:
+    """One graph per input on its rank (``out/stream<b>/``); rank 0 merges the summaries. With
+    checkpoints (``res``'s ``LoopCheckpoints``), one as each input is written: a resumed rank
+    takes the finished inputs' entries from it and writes only the others."""
     from .loop import _finish, _Inputs, _Prepared, _vocabulary
     from .loop_stages import keyframe_ate
 
@@ -505,9 +522,13 @@ def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[s
     def graphs():
         if res is None:
             return []
-        inp, prep, times = res
+        inp, prep, times, ck = res
+        finished = dict(ck.payload.get("finished") or {}) if ck is not None else {}
         done = []
         for j, g in enumerate(mine):
+            if g in finished:  # written before the checkpoint this rank continues from
+                done.append(finished[g])
+                continue
             inp_b = _Inputs(inp.cfg, inp.device, inp.R_ic, inp.t_ic, [inp.seqs[j]], [inp.names[j]], [inp.trajs[j]],
                             [inp.pose_names[j]], [inp.gts[j]], [inp.gt_trajs[j]], inp.vocabulary)
             sk = prep.skipped_per_stream[j]
@@ -522,22 +543,27 @@ def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[s
                 _, _, sa, _ = keyframe_ate(s.corrected, s.ground_truth, opt.max_pose_gap)
                 raw = (sb, sa, n)
             done.append({"stream": g, "summary": run.summary, "ate_sums": raw})
+            if ck is not None and ck.writer.enabled:  # finished: a resumed rank does not redo it
+                finished[g] = done[-1]
+                ck.save(int(ck.writer.frames) + 1, "streams", {"finished": dict(finished)}, {})
+                ck.kill_point("written", len(finished))  # the test hook: after the input's checkpoint
             job.beat()
         return done
 
-    done = job.run(graphs, exit_code_of, phase="graphs")
+    done = job.run(_work_with_stage(graphs, list(holder)), exit_code_of, phase="graphs")
     gathered = job.gather({"rank": job.rank, "streams": mine, "host": os.uname().nodename, "done": done,
                            "times": res[2] if res else {}, "input": res[1].input_times if res else {}})
-    if job.rank != 0:
-        return None
-    per = [d for g in gathered for d in g["done"]]
-    ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
-              "times": {k: round(v, 6) for k, v in g["times"].items()}} for g in gathered]
-    inputs = [g["input"] for g in gathered if g["input"]]
-    summary, index = _merge_loop(per, opt, out, job, ranks, inputs, time.perf_counter() - t_start)
-    if out is not None:
-        _write_merged(Path(out), "loop-sharded", summary, index)
-    return summary
+
+    def merge():
+        per = [d for g in gathered for d in g["done"]]
+        ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
+                  "times": {k: round(v, 6) for k, v in g["times"].items()}} for g in gathered]
+        inputs = [g["input"] for g in gathered if g["input"]]
+        summary, index = _merge_loop(per, opt, out, job, ranks, inputs, time.perf_counter() - t_start)
+        if out is not None:
+            _write_merged(Path(out), "loop-sharded", summary, index)
+        return summary
+    return _finish_job(job, [], merge)
 
 
 def _merge_loop(per, opt, out, job, ranks, inputs, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:

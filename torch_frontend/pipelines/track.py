@@ -421,8 +421,7 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                 if stage is not None:
                     from . import checkpoint as ckpt
 
-                    if ckpt.kill_point("frame", steps):
-                        ckpt.kill_now()
+                    ckpt.frame_hook(steps)
                     # one as a stream ends (after the whole step: every recorder has it), so
                     # that a resumed run does not redo it
                     if stage.writer.due(steps) or (ended and stage.writer.enabled):
