@@ -325,3 +325,46 @@ def test_loop_resume_refused_for_another_run_and_start_over_without_it(loop_cli,
     assert main(args + ["--out", str(out)]) == 0  # no --resume: from the first frame
     assert_same_loop_outputs(ref, out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "vio0.csv"]
+
+
+@pytest.mark.slow
+def test_loop_killed_in_its_first_checkpoint_starts_over(loop_cli, tmp_path, capsys):
+    """No checkpoint complete (killed inside the first): --resume says so and runs from the first
+    frame; the half-written checkpoint's folder is removed."""
+    import warnings
+
+    args, ref = loop_cli
+    out = tmp_path / "out"
+    with pytest.raises(FileNotFoundError):
+        run_killed(args, out, "checkpoint:1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the note is a DataWarning: the CLI prints it as one line
+        with pytest.raises(Warning, match="no checkpoint of an interrupted run"):
+            resume(args, out)
+    capsys.readouterr()
+    assert resume(args, out) == 0
+    assert_same_loop_outputs(ref, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.slow
+def test_loop_sigterm_keeps_the_checkpoint(loop_cli, tmp_path):
+    """SIGTERM (a preemption's first signal) after a checkpoint: exit 143, the message says to
+    rerun with --resume, the checkpoint stays; --resume finishes the run."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+    from torch_frontend._atomic import stale_staging
+    from torch_frontend.pipelines.checkpoint import KILL_ENV
+
+    args, ref = loop_cli
+    out = tmp_path / "out"
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(REPO), **{KILL_ENV: "term:7"})
+    p = subprocess.run([sys.executable, "-m", "torch_frontend", *args, "--out", str(out), "--checkpoint-every",
+                        str(EVERY)], env=env, capture_output=True, text=True, timeout=DEADLINE)
+    assert p.returncode == 143, p.stderr
+    assert "--resume" in p.stderr and len(stale_staging(out)) == 1
+    assert resume(args, out) == 0
+    assert_same_loop_outputs(ref, out)
