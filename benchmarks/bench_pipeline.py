@@ -14,6 +14,10 @@ Usage:
     python benchmarks/bench_pipeline.py --profile 16 # where the time goes at B = 16, 1 thread:
                                                      # results/pipeline_profile.md (torch.profiler
                                                      # ops and cProfile functions)
+    python benchmarks/bench_pipeline.py --rig        # per-stream configs: a mixed batch of equal-size
+                                                     # configs and a mixed-size one vs a homogeneous
+                                                     # batch of the same B, in one process, 1 thread:
+                                                     # results/pipeline_rig.{json,md}
 
 Writes ``benchmarks/results/pipeline.json`` and ``benchmarks/results/pipeline.md`` (temp + rename),
 and a scaling plot ``benchmarks/results/pipeline_scaling.png``.
@@ -222,6 +226,94 @@ def profile(B: int, n_meas: int = 6) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: ``--rig``: the mixed batches, as ``(label, configs)`` cycled over the B streams. Equal size: four
+#: 752x480 configs of two models and other VINS keys and intrinsics; mixed size: EuRoC and TUM-VI
+RIG_BATCHES = ("equal-size mixed (pinhole, MEI, other fx, other max_cnt/min_dist)", "mixed sizes (752x480, 512x512)")
+
+
+def _rig_configs():
+    import dataclasses
+
+    import torch
+
+    import torch_frontend as tf
+
+    euroc = tf.load_config(REPO / "configs" / "euroc.yaml")
+    mei = tf.load_config(REPO / "configs" / "euroc_mono_mei.yaml")
+    other_fx = dataclasses.replace(euroc, camera=type(euroc.camera).from_params(
+        {**euroc.camera.params_dict(), "fx": euroc.camera.params_dict()["fx"] * 1.02},
+        width=euroc.image_width, height=euroc.image_height))
+    other_keys = dataclasses.replace(euroc, max_cnt=120, min_dist=25)
+    tum = tf.load_config(REPO / "configs" / "tum_vi.yaml")
+    del torch
+    return euroc, {RIG_BATCHES[0]: [euroc, mei, other_fx, other_keys], RIG_BATCHES[1]: [euroc, tum]}
+
+
+def rig(batches=(4, 8, 16), n_warm: int = 4, n_meas: int = 4, repeats: int = 5) -> dict:
+    """CPU ms per stream-frame of a homogeneous batch (B EuRoC streams) and of the mixed batches of
+    :data:`RIG_BATCHES` at the same B, 1 thread, in this process: windows of ``n_meas`` steps
+    alternate between the batches, the fastest window of each counts (as :func:`run_one`)."""
+    import cv2
+    import numpy as np
+    import torch
+
+    import torch_frontend as tf
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    euroc, mixes = _rig_configs()
+    frames = _frames()
+    rows = []
+    for B in batches:
+        n_total = n_warm + repeats * n_meas
+        steps = _stream_frames(frames, B, n_total)
+        stamps = [1403715273.0 + 0.05 * k for k in range(n_total)]
+        runs = {"homogeneous": (tf.FeatureTracker(euroc, num_streams=B), None)}
+        for label, cfgs in mixes.items():
+            per = [cfgs[b % len(cfgs)] for b in range(B)]
+            runs[label] = (tf.FeatureTracker(per), per)
+
+        def inputs(per, k, steps=steps):
+            if per is None:
+                return torch.from_numpy(np.stack(steps[k]))[:, None]
+            # each stream at its config's size: the sample frame resized (TUM-VI's 512x512)
+            return [torch.from_numpy(im if (im.shape[1], im.shape[0]) == (c.image_width, c.image_height) else
+                                     cv2.resize(im, (c.image_width, c.image_height), interpolation=cv2.INTER_AREA))
+                    for im, c in zip(steps[k], per)]
+
+        batches_in = {lab: [inputs(per, k) for k in range(n_total)] for lab, (_, per) in runs.items()}
+        for lab, (tr, _) in runs.items():
+            for k in range(n_warm):
+                tr.track(batches_in[lab][k], [stamps[k]] * B)
+        best = {lab: float("inf") for lab in runs}
+        for r in range(repeats):
+            win = range(n_warm + r * n_meas, n_warm + (r + 1) * n_meas)
+            for lab, (tr, _) in runs.items():
+                t0 = time.perf_counter()
+                for k in win:
+                    tr.track(batches_in[lab][k], [stamps[k]] * B)
+                best[lab] = min(best[lab], time.perf_counter() - t0)
+        ms = {lab: t / (n_meas * B) * 1e3 for lab, t in best.items()}
+        row = {"B": B, "ms_per_stream_frame": ms, "groups": {lab: len(tr.groups) for lab, (tr, _) in runs.items()},
+               "ratio_vs_homogeneous": {lab: ms[lab] / ms["homogeneous"] for lab in ms if lab != "homogeneous"}}
+        rows.append(row)
+        print(f"  B={B}: " + ", ".join(f"{lab}: {v:.2f} ms ({len(runs[lab][0].groups)} groups)" for lab, v in ms.items()),
+              flush=True)
+    return {"machine": machine_description(), "threads": 1, "rows": rows}
+
+
+def rig_markdown(res) -> str:
+    lines = [f"Machine: {res['machine']}; 1 thread; the fastest of 5 windows of 4 steps, the batches' windows "
+             "alternating in one process (`python benchmarks/bench_pipeline.py --rig`).", "",
+             "| B | homogeneous ms/stream-frame | " + " | ".join(f"{lab}: ms (groups), × homogeneous" for lab in RIG_BATCHES)
+             + " |", "|---|---|" + "---|" * len(RIG_BATCHES)]
+    for r in res["rows"]:
+        ms = r["ms_per_stream_frame"]
+        cells = [f"{ms[lab]:.2f} ({r['groups'][lab]}), {r['ratio_vs_homogeneous'][lab]:.2f}×" for lab in RIG_BATCHES]
+        lines.append(f"| {r['B']} | {ms['homogeneous']:.2f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _target(row) -> str:
     if "ratio" not in row:
         return ""
@@ -343,8 +435,21 @@ def main(argv=None) -> int:
                     help="profile the tracker at B streams (1 thread) instead of the table")
     ap.add_argument("--out-name", default="pipeline",
                     help="results/<name>.json and .md (default pipeline; benchmarks/gpu.sh: pipeline_cuda)")
+    ap.add_argument("--rig", action="store_true",
+                    help="per-stream configs: mixed batches vs a homogeneous one (results/pipeline_rig.*)")
     ap.add_argument("--one", type=str, default=None, help=argparse.SUPPRESS)  # internal: run one config
     args = ap.parse_args(argv)
+    if args.rig:
+        res = rig(tuple(args.batches or (4, 8, 16)))
+        md = rig_markdown(res)
+        print(md)
+        sys.path.insert(0, str(HERE))
+        from _common import write_atomic, write_json_atomic
+
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(RESULTS / "pipeline_rig.json", res)
+        write_atomic(RESULTS / "pipeline_rig.md", md.encode())
+        return 0
     if args.profile is not None:
         md = profile(args.profile)
         print(md)

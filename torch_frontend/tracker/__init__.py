@@ -10,6 +10,7 @@ Modules, in the order a frame goes through them:
   updateID, undistortedPoints, the stereo step, the estimator's hooks);
 * ``track_step``: :func:`step`, the stages composed for mono and fusion;
 * ``frame``: :class:`FeatureFrame`, what a step publishes;
+* ``streams``: per-stream configs: streams of equal configs grouped, inputs split and frames merged;
 * ``feature_tracker``: :class:`FeatureTracker`, the thin stateful wrapper.
 """
 
@@ -17,7 +18,8 @@ from .feature_tracker import FeatureTracker
 from .frame import FeatureFrame
 from .params import TrackerParams
 from .state import ClockState, TrackerState
+from .streams import GroupedState
 from .table import FeatureTable
 from .track_step import step
 
-__all__ = ["FeatureTracker", "FeatureFrame", "FeatureTable", "TrackerParams", "TrackerState", "ClockState", "step"]
+__all__ = ["FeatureTracker", "FeatureFrame", "FeatureTable", "TrackerParams", "TrackerState", "ClockState", "GroupedState", "step"]

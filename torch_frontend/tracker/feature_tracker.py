@@ -17,7 +17,7 @@ import functools
 import time
 import warnings
 import weakref
-from typing import Callable, Dict, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -25,13 +25,23 @@ import torch.utils._pytree as pytree
 
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
-from ..config import TrackerConfig, load_config
+from ..config import TrackerConfig
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
 from .params import TrackerParams
 from .stages import remove_features, set_prediction
 from .state import TrackerState
-from .track_step import check_active, check_inputs, check_timestamps, step_impl
+from .streams import (
+    GroupedState,
+    StreamGroup,
+    group_key,
+    inverse_order,
+    merge_frames,
+    partition,
+    split_images,
+    stream_configs,
+)
+from .track_step import check_active, check_images, check_inputs, check_timestamps, step_impl
 
 
 class _StageTimer:
@@ -180,12 +190,12 @@ class FeatureTracker:
 
     def __init__(
         self,
-        config: Union[TrackerConfig, str],
-        num_streams: int = 1,
+        config: Union[TrackerConfig, str, Sequence[Union[TrackerConfig, str]]],
+        num_streams: Optional[int] = None,
         device: Union[str, torch.device] = "cpu",
         mode: str = "mono",
         dtype: torch.dtype = torch.float32,
-        fisheye_mask: Optional[torch.Tensor] = None,
+        fisheye_mask=None,
         seed: int = 0,
         capturable: Optional[bool] = None,
         lk_iter_budget=None,
@@ -193,60 +203,166 @@ class FeatureTracker:
         differentiable: bool = False,
         grad_mode: str = "implicit",
     ):
-        if not isinstance(config, TrackerConfig):
-            config = load_config(config)
-        if config.camera is None:
-            raise ValueError(f"config {config.path}: has no camera; the tracker needs one")
-        if num_streams < 1:
-            raise ValueError(f"num_streams: expected >= 1, got {num_streams}")
-        self.config = config
-        self.B = int(num_streams)
+        configs = stream_configs(config, num_streams)  # B configs; one given is every stream's
+        for c in configs:
+            if c.camera is None:
+                raise ValueError(f"config {c.path}: has no camera; the tracker needs one")
+        self.configs: Tuple[TrackerConfig, ...] = tuple(configs)
+        self.B = len(configs)
         self.device = check_device(device)  # a ValueError naming it and what is available
         self.dtype = dtype
         if capturable is None:
             capturable = self.device.type != "cpu"
         self.capturable = bool(capturable)
         self.differentiable = bool(differentiable)
-        try:
-            params = TrackerParams.from_config(config, mode=mode, seed=int(seed), fisheye_mask=fisheye_mask,
-                                               capturable=self.capturable, lk_iter_budget=lk_iter_budget,
-                                               lk_tail_share=lk_tail_share,
-                                               differentiable=self.differentiable, lk_grad_mode=grad_mode)
-        except ValueError as exc:
-            raise ValueError(f"config {config.path}: {exc}") from None
-        self.params = params.to(self.device)
+        masks = self._stream_masks(fisheye_mask)
+        options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
+                       lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode)
+        built: Dict[Tuple[int, int], TrackerParams] = {}
+        for b, c in enumerate(configs):
+            if (id(c), id(masks[b])) not in built:
+                try:
+                    built[id(c), id(masks[b])] = TrackerParams.from_config(c, fisheye_mask=masks[b], **options)
+                except ValueError as exc:
+                    raise ValueError(f"config {c.path}: {exc}") from None
+        groups = partition([group_key(built[id(c), id(masks[b])], masks[b]) for b, c in enumerate(configs)])
+        self._groups: Optional[Tuple[StreamGroup, ...]] = None
+        self._members: Tuple[FeatureTracker, ...] = ()
         self._stage = _StageTimer()
         self._compiled: Optional[_CompiledStep] = None
+        if len(groups) > 1:
+            # per-stream configs: one homogeneous tracker per group of equal configs (tracker.streams)
+            kwargs = dict(device=self.device, mode=mode, dtype=dtype, seed=seed, capturable=self.capturable,
+                          lk_iter_budget=lk_iter_budget, lk_tail_share=lk_tail_share,
+                          differentiable=self.differentiable, grad_mode=grad_mode)
+            self._groups = tuple(groups)
+            self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
+                                                 **kwargs) for g in groups)
+            inv = inverse_order(groups)
+            self._inverse = None if inv is None else torch.tensor(inv, dtype=torch.int64, device=self.device)
+            self._params = None
+            self._restarts = None
+            self.state = self.initial_state()
+            return
+        self._params = built[id(configs[0]), id(masks[0])].to(self.device)
         # mono: warns once per stream when its timestamps restart the clock at every step (clock.RestartWatch)
         self._restarts = RestartWatch(self.B, self.params.restart_gap) if self.params.mode == "mono" else None
         self.reset()
 
+    def _stream_masks(self, fisheye_mask) -> List[Optional[torch.Tensor]]:
+        """``fisheye_mask`` per stream: None, one ``(H, W)`` mask for every stream, or a sequence of B
+        (None entries: the analytic disc)."""
+        if isinstance(fisheye_mask, (list, tuple)):
+            if len(fisheye_mask) != self.B:
+                raise ValueError(f"fisheye_mask: expected one mask (or None) per stream, {self.B}, got "
+                                 f"{len(fisheye_mask)}")
+            return list(fisheye_mask)
+        return [fisheye_mask] * self.B
+
+    # ------------------------------------------------------------------ per-stream configs
+    @property
+    def mixed(self) -> bool:
+        """The streams have different configs (cameras, sizes or VINS keys): the step runs one
+        homogeneous sub-step per group of equal configs (``tracker.streams``)."""
+        return self._groups is not None
+
+    @property
+    def groups(self) -> Tuple[Tuple[Tuple[int, ...], FeatureTracker], ...]:
+        """``((streams, tracker), ...)``: each group's streams (global indices) and its homogeneous
+        tracker; one group of every stream (this tracker) when the configs are one."""
+        if self._groups is None:
+            return ((tuple(range(self.B)), self),)
+        return tuple((g.streams, m) for g, m in zip(self._groups, self._members))
+
+    def _locate(self, stream: int) -> Tuple[FeatureTracker, int]:
+        for streams, member in self.groups:
+            if stream in streams:
+                return member, streams.index(stream)
+        raise ValueError(f"stream: expected 0 <= stream < {self.B}, got {stream}")
+
+    def stream_params(self, stream: int) -> TrackerParams:
+        """Stream ``stream``'s :class:`TrackerParams` (its camera, size and VINS keys)."""
+        if not 0 <= stream < self.B:
+            raise ValueError(f"stream: expected 0 <= stream < {self.B}, got {stream}")
+        return self._locate(stream)[0].params
+
+    @property
+    def params(self) -> TrackerParams:
+        """The streams' :class:`TrackerParams` (one config for all); a mixed tracker has one per
+        stream: :meth:`stream_params`."""
+        if self._groups is not None:
+            raise AttributeError("params: this tracker has per-stream configs "
+                                 f"({len(self._groups)} groups); use tracker.stream_params(b)")
+        return self._params
+
+    @params.setter
+    def params(self, value: TrackerParams) -> None:
+        if self._groups is not None:
+            raise AttributeError("params: a tracker with per-stream configs has no single params to set")
+        self._params = value
+
+    @property
+    def config(self) -> TrackerConfig:
+        """The streams' config (one for all); a mixed tracker has one per stream: ``configs[b]``."""
+        if self._groups is not None:
+            raise AttributeError("config: this tracker has per-stream configs; use tracker.configs[b]")
+        return self.configs[0]
+
     # ------------------------------------------------------------------ read-only views
     @property
     def mode(self) -> str:
-        return self.params.mode
+        return self._members[0].mode if self._groups is not None else self.params.mode
 
     @property
     def K(self) -> int:
-        """Slots per stream (``max_cnt``)."""
+        """Slots per stream: the (largest) ``max_cnt``; a stream with a smaller one never fills more."""
+        if self._groups is not None:
+            return max(m.K for m in self._members)
         return self.params.max_cnt
 
     @property
     def camera(self):
+        """The streams' camera 0 (one config); a mixed tracker: :attr:`cameras`."""
+        if self._groups is not None:
+            raise AttributeError("camera: this tracker has per-stream cameras; use tracker.cameras[b]")
         return self.params.camera
 
     @property
     def camera1(self):
+        if self._groups is not None:
+            raise AttributeError("camera1: this tracker has per-stream cameras; use tracker.cameras1[b]")
         return self.params.camera1
 
     @property
+    def cameras(self) -> Tuple:
+        """Every stream's camera 0 (stream b's model; streams of one group share one object)."""
+        return tuple(self.stream_params(b).camera for b in range(self.B))
+
+    @property
+    def cameras1(self) -> Tuple:
+        """Every stream's camera 1 (None where a stream has no stereo camera)."""
+        return tuple(self.stream_params(b).camera1 for b in range(self.B))
+
+    @property
     def stage_times(self) -> Optional[Dict[str, float]]:
-        """Seconds spent per stage since ``enable_stage_times()`` (None when disabled)."""
+        """Seconds spent per stage since ``enable_stage_times()`` (None when disabled; a mixed
+        tracker: summed over its groups)."""
+        if self._groups is not None:
+            parts = [m.stage_times for m in self._members]
+            if parts[0] is None:
+                return None
+            total: Dict[str, float] = {}
+            for part in parts:
+                for k, v in part.items():
+                    total[k] = total.get(k, 0.0) + v
+            return total
         return self._stage.times
 
     def enable_stage_times(self, enabled: bool = True) -> None:
         """Start (or stop) accumulating per-stage wall-clock times (CLAHE, pyramid, LK, RANSAC,
         mask, detection, undistort) into ``stage_times``."""
+        for m in self._members:
+            m.enable_stage_times(enabled)
         self._stage.times = {} if enabled else None
 
     def compile(self, enable: bool = True, *, fallback: bool = True, **compile_kwargs) -> None:
@@ -270,7 +386,12 @@ class FeatureTracker:
 
         With ``capturable=False`` (the CPU-tuned path, whose early exits need the host) only the LK
         iteration kernel is compiled, for this tracker only (its ``params.lk_compile_step``:
-        ``LKOptions.compile_step`` with ``compile_kwargs``; other trackers keep theirs)."""
+        ``LKOptions.compile_step`` with ``compile_kwargs``; other trackers keep theirs). A mixed
+        tracker compiles each group's step."""
+        if self._groups is not None:
+            for m in self._members:
+                m.compile(enable, fallback=fallback, **compile_kwargs)
+            return
         if not self.capturable:
             self.params = dataclasses.replace(self.params, lk_compile_step=(dict(compile_kwargs) or True) if enable
                                               else False)
@@ -287,13 +408,20 @@ class FeatureTracker:
         self._compiled = _CompiledStep(functools.partial(torch.compile, **opts), self.device.type == "cuda", fallback)
 
     # ------------------------------------------------------------------ state
-    def initial_state(self) -> TrackerState:
-        """The state of B streams that have seen nothing."""
+    def initial_state(self) -> Union[TrackerState, GroupedState]:
+        """The state of B streams that have seen nothing (a mixed tracker: a :class:`GroupedState`)."""
+        if self._groups is not None:
+            return GroupedState(tuple(m.initial_state() for m in self._members))
         return TrackerState.initial(self.B, self.K, device=self.device, dtype=self.dtype,
                                     fusion=self.mode == "fusion")
 
     def reset(self) -> None:
         """Forget everything: all streams start again as at construction."""
+        for m in self._members:
+            m.reset()
+        if self._groups is not None:
+            self.state = GroupedState(tuple(m.state for m in self._members))
+            return
         self.state = self.initial_state()
         self._mirror: Optional[Tuple[weakref.ref, HostClock]] = None
         if self._plans:
@@ -344,23 +472,29 @@ class FeatureTracker:
         return publish_plan(int(np.count_nonzero(publish)), self.B), host
 
     # ------------------------------------------------------------------ the step
-    def step(self, state: TrackerState, images, timestamps, right=None, active=None):
+    def step(self, state, images, timestamps, right=None, active=None, sizes=None):
         """The pure step with this tracker's params: ``(new_state, frame)``; ``state`` is not changed.
 
         Args:
             state: a state of this tracker (``initial_state()``, ``self.state`` or a previous result).
-            images: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float 0..255.
+            images: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float 0..255; or a list of B images
+                ``(H_b, W_b)`` / ``(1, H_b, W_b)``, each stream at its own size (per-stream configs).
             timestamps: ``(B,)`` seconds (float64 tensor or sequence).
-            right: fusion stereo only: camera 1's images, tracked left -> right with the same ids.
+            right: fusion stereo only: camera 1's images, tracked left -> right with the same ids
+                (the same forms as ``images``).
             active: optional ``(B,)`` bool; a stream with False is left exactly as it was (its
                 clock, features and ids do not change), e.g. a sequence that has ended while the
                 others go on. Its outputs are empty for this step.
+            sizes: with one padded ``images`` tensor, ``(B, 2)`` ``(H_b, W_b)`` per stream (host):
+                stream b's image is the top-left ``H_b x W_b`` (``right`` padded alike).
 
         Capturable mono: the host replays the clock on its own copy (``clock.host_clock_step``) and
         picks the step's variant (``clock.publish_plan``) before the upload, so unpublished frames
         skip rejectWithF, setMask and detection without a sync. Give ``timestamps`` and ``active``
         on the host for that (device tensors are read back: a sync).
         """
+        if self._groups is not None or sizes is not None or isinstance(images, (list, tuple)):
+            return self._grouped_step(state, images, timestamps, right, active, sizes)
         plan = host = None
         if self._plans:
             # the publish decision on the host, before the upload (timestamps and active given on the
@@ -373,6 +507,10 @@ class FeatureTracker:
                                           config_name=f"the config {self.config.path}")
         if self._restarts is not None:  # host values only: no sync (clock.RestartWatch)
             self._restarts.observe(state, timestamps, active)
+        return self._run(state, img, t, arrived, r, plan, host)
+
+    def _run(self, state, img, t, arrived, r, plan, host):
+        """The step on checked inputs (the door's outputs) and the host's plan; keeps the mirrors."""
         if self._compiled is not None:
             new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
         else:
@@ -383,9 +521,66 @@ class FeatureTracker:
             self._restarts.follow(new)
         return new, frame
 
-    def track(self, images, timestamps, right=None, active=None) -> FeatureFrame:
+    def _grouped_step(self, state, images, timestamps, right, active, sizes):
+        """:meth:`step` of per-stream inputs (a list of images, a padded batch with ``sizes``) or of a
+        mixed tracker: the whole batch checked once (each stream against its own config), uploaded
+        once, split per group on the device (``tracker.streams``), each group's homogeneous step on
+        its rows, the frames merged in stream order."""
+        groups = self._groups or (StreamGroup(tuple(range(self.B))),)
+        members = self._members or (self,)
+        dev = self.device
+        imgs, hw = split_images(images, sizes, groups, self.B, device=dev)
+        rights = [None] * len(groups) if right is None else \
+            split_images(right, sizes, groups, self.B, "right", device=dev)[0]
+        for b in range(self.B):  # each stream against its own config (host shapes, no sync)
+            p = members[0].params if self._groups is None else self.stream_params(b)
+            if p.mode == "mono" and hw[b] != (p.height, p.width):
+                name = self.configs[b].path
+                raise ValueError(f"images[{b}]: image size {hw[b][1]}x{hw[b][0]} differs from stream {b}'s config "
+                                 f"{name}: image_width x image_height = {p.width}x{p.height}")
+        if self._groups is None:
+            return self.step(state, imgs[0], timestamps, right=rights[0], active=active)
+        if not isinstance(state, GroupedState) or len(state.groups) != len(self._members):
+            raise ValueError(f"state: expected this tracker's GroupedState of {len(self._members)} stream groups "
+                             f"(tracker.initial_state()), got {type(state).__name__}")
+        on_host = not (isinstance(timestamps, torch.Tensor) and timestamps.device.type != "cpu")
+        act_host = not (isinstance(active, torch.Tensor) and active.device.type != "cpu")
+        t_all = check_timestamps(timestamps, self.B, dev)  # checked on the host, one upload
+        a_all = check_active(active, self.B, dev)
+        need_host = any(m._plans or m._restarts is not None for m in self._members)
+        # the host's copies for the groups' plans and restart watches (device ones are read back: a
+        # sync, as for a homogeneous tracker given device timestamps)
+        t_host = check_timestamps(timestamps, self.B, "cpu") if need_host else None
+        a_host = check_active(active, self.B, "cpu") if need_host else None
+        news, frames = [], []
+        for g, m, s, im, r in zip(self._groups, self._members, state.groups, imgs, rights):
+            idx = g.index(dev)
+            t_g, a_g = t_all.index_select(0, idx), a_all.index_select(0, idx)
+            th = None if t_host is None else t_host[list(g.streams)]
+            ah = None if a_host is None else a_host[list(g.streams)]
+            plan = host = None
+            if m._plans:
+                plan, host = m._plan(s, th, ah)
+            prev = None if s.prev_pyramid is None else tuple(s.prev_pyramid.levels[0].shape[-2:])
+            img = check_images(im, m.params, g.size, dev, size=prev)
+            rr = None
+            if r is not None:
+                if m.mode == "mono":
+                    raise ValueError("right: stereo images are only supported with mode='fusion'")
+                if m.params.camera1 is None:
+                    raise ValueError(f"right: streams {list(g.streams)}: the config {m.config.path} has no "
+                                     f"cam1_calib (num_of_cam 2)")
+                rr = check_images(r, m.params, g.size, dev, "right", size=tuple(img.shape[-2:]))
+            if m._restarts is not None:
+                m._restarts.observe(s, th if on_host else t_g, ah if act_host else a_g)
+            new, frame = m._run(s, img, t_g, a_g, rr, plan, host)
+            news.append(new)
+            frames.append(frame)
+        return GroupedState(tuple(news)), merge_frames(frames, self._groups, self.K, self._inverse)
+
+    def track(self, images, timestamps, right=None, active=None, sizes=None) -> FeatureFrame:
         """Process one image per stream (see :meth:`step` for the arguments) and keep the new state."""
-        self.state, frame = self.step(self.state, images, timestamps, right=right, active=active)
+        self.state, frame = self.step(self.state, images, timestamps, right=right, active=active, sizes=sizes)
         return frame
 
     # ------------------------------------------------------------------ the estimator's hooks
@@ -393,6 +588,13 @@ class FeatureTracker:
         """Drop features by id from one stream (VINS-Fusion ``removeOutliers``)."""
         if not 0 <= stream < self.B:
             raise ValueError(f"stream: expected 0 <= stream < {self.B}, got {stream}")
+        if self._groups is not None:
+            member, local = self._locate(stream)
+            member.state = self.state.groups[self._members.index(member)]
+            member.remove(local, ids)
+            self.state = GroupedState(tuple(m.state if m is member else s
+                                            for m, s in zip(self._members, self.state.groups)))
+            return
         drop_ids = torch.as_tensor(list(ids), dtype=torch.int64, device=self.device)
         if drop_ids.numel() == 0:
             return
@@ -411,6 +613,16 @@ class FeatureTracker:
         """
         check_shape(ids, (self.B, "M"), "ids")
         check_shape(uv, (self.B, ids.shape[1], 2), "uv")
+        if self._groups is not None:
+            news = []
+            for g, m, s in zip(self._groups, self._members, self.state.groups):
+                idx = g.index(ids.device)
+                m.state = s
+                m.set_prediction(ids.index_select(0, idx), uv.index_select(0, idx.to(uv.device)),
+                                 None if valid is None else valid.index_select(0, idx.to(valid.device)))
+                news.append(m.state)
+            self.state = GroupedState(tuple(news))
+            return
         ids = ids.to(self.device)
         v = torch.ones_like(ids, dtype=torch.bool) if valid is None else valid.to(self.device, torch.bool)
         table, has = set_prediction(self.state.features, ids, uv.to(self.device), v)
