@@ -192,6 +192,9 @@ def _finish_job(job, holder: List[Any], merge) -> Any:
         if job.rank == 0:
             box["result"] = merge()
     job.run(phase, exit_code_of, phase="merge")
+    # meet once more: rank 0 may host the store (no launcher agent), and a rank still reading the
+    # merge phase's outcomes must not find it gone
+    job.barrier()
     for st in holder:
         st.close()
     return box.get("result")
@@ -467,7 +470,8 @@ def _dist_entry(job, ranks: List[Dict[str, Any]]) -> Dict[str, Any]:
 
 
 def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Dict[str, Any]]:
-    """Rank 0 builds the one graph from every rank's keyframes and writes ``run_loop``'s outputs."""
+    """Rank 0 builds the one graph from every rank's keyframes and writes ``run_loop``'s outputs
+    (the job's last phase: the ranks keep their checkpoints until it is done)."""
     from .loop import _finish, _Inputs, _Prepared
 
     payload = None
@@ -475,28 +479,29 @@ def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Di
         inp, prep, times, _ = res
         payload = (*_shareable(inp, prep, opt.keep_images), times)
     gathered = job.gather({"rank": job.rank, "streams": mine, "host": os.uname().nodename, "part": payload})
-    if job.rank != 0:
-        return None
-    parts = [g["part"] for g in gathered if g["part"] is not None]
-    i0 = parts[0][0]
-    inp_all = _Inputs(i0.cfg, resolve_device(opt.device), i0.R_ic, i0.t_ic, [], [n for p in parts for n in p[0].names],
-                      [t for p in parts for t in p[0].trajs], [n for p in parts for n in p[0].pose_names], list(gts),
-                      [t for p in parts for t in p[0].gt_trajs], prepared[0])
-    preps = [p[1] for p in parts]
-    prep_all = _Prepared([x for p in preps for x in p.logs], sum(p.skipped for p in preps),
-                         [x for p in preps for x in p.tri], [x for p in preps for x in p.descs],
-                         {"workers": int(opt.workers),
-                          "decode_seconds": round(sum(p.input_times["decode_seconds"] for p in preps), 6),
-                          "input_wait_seconds": round(sum(p.input_times["input_wait_seconds"] for p in preps), 6)},
-                         [x for p in preps for x in p.skipped_per_stream])
-    # the stages that ran on every rank took as long as the slowest rank
-    times: Dict[str, float] = {"vocabulary_load": prepared[1]}
-    for key in ("tracking", "triangulation", "description"):
-        times[key] = max(p[2].get(key, 0.0) for p in parts)
-    ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
-              "times": {k: round(v, 6) for k, v in (g["part"][2] if g["part"] else {}).items()}} for g in gathered]
-    run = _finish(inp_all, prep_all, opt, times, t_start, out, {"distributed": _dist_entry(job, ranks)})
-    return run.summary
+
+    def merge():  # the ranks wait (their checkpoints kept) until the graph and outputs are written
+        parts = [g["part"] for g in gathered if g["part"] is not None]
+        i0 = parts[0][0]
+        inp_all = _Inputs(i0.cfg, resolve_device(opt.device), i0.R_ic, i0.t_ic, [], [n for p in parts for n in p[0].names],
+                          [t for p in parts for t in p[0].trajs], [n for p in parts for n in p[0].pose_names], list(gts),
+                          [t for p in parts for t in p[0].gt_trajs], prepared[0])
+        preps = [p[1] for p in parts]
+        prep_all = _Prepared([x for p in preps for x in p.logs], sum(p.skipped for p in preps),
+                             [x for p in preps for x in p.tri], [x for p in preps for x in p.descs],
+                             {"workers": int(opt.workers),
+                              "decode_seconds": round(sum(p.input_times["decode_seconds"] for p in preps), 6),
+                              "input_wait_seconds": round(sum(p.input_times["input_wait_seconds"] for p in preps), 6)},
+                             [x for p in preps for x in p.skipped_per_stream])
+        # the stages that ran on every rank took as long as the slowest rank
+        times: Dict[str, float] = {"vocabulary_load": prepared[1]}
+        for key in ("tracking", "triangulation", "description"):
+            times[key] = max(p[2].get(key, 0.0) for p in parts)
+        ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
+                  "times": {k: round(v, 6) for k, v in (g["part"][2] if g["part"] else {}).items()}} for g in gathered]
+        run = _finish(inp_all, prep_all, opt, times, t_start, out, {"distributed": _dist_entry(job, ranks)})
+        return run.summary
+    return _finish_job(job, [], merge)
 
 
 def _separate_graphs(job, res, mine, opt, ropt, out, t_start, holder=()) -> Optional[Dict[str, Any]]:
