@@ -116,6 +116,7 @@ def test_torchrun_finished_stream_not_redone(track_job, tmp_path):
     assert no_staging_left(out)
 
 
+@pytest.mark.slow
 def test_torchrun_without_restarts_fails_and_resume_continues(track_job, tmp_path):
     """Without --max-restarts the killed rank fails the job (as before); its checkpoints stay in
     the job's staging area, and the same command with --resume continues from them."""

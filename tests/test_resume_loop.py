@@ -73,7 +73,8 @@ def reference(scene):
     return _fingerprint(pg)
 
 
-@pytest.mark.parametrize("stop", [1, 12, 21])  # before any candidate, before the first loop, after loops
+@pytest.mark.parametrize("stop", [pytest.param(1, marks=pytest.mark.slow), 12, 21])  # before any candidate, before
+# the first loop, after loops
 def test_pose_graph_stopped_saved_restored_goes_on_bit_identically(scene, reference, stop):
     seq, kfs, voc = scene
     a = _graph(seq, voc)
