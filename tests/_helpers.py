@@ -47,6 +47,43 @@ def make_asl(root: Path, n: int = 4, camera: str = "cam0", frames=None, small: b
     return root
 
 
+def make_loop_inputs(root: Path, keyframes_per_lap: int = 8) -> list:
+    """The demo's revisit render, small (160 x 120, 2 laps of ``keyframes_per_lap`` keyframes), as
+    two image folders (lap 1, lap 2) under ``root`` with their VIO poses and ground truth, and a
+    config for its camera. Returns the ``loop`` command's arguments (without ``--out``): both laps,
+    a keyframe every 2 published frames, a trained vocabulary, no progress bar."""
+    from torch_frontend.geometry import R_to_quat
+    from torch_frontend.pipelines import loop as loop_run
+    from torch_frontend.trajectory import Trajectory, write_tum, write_vins_csv
+
+    W, H = 160, 120
+    seq = loop_run.demo_sequence(laps=2, keyframes_per_lap=keyframes_per_lap, width=W, height=H)
+    cam = seq.camera
+    (root / "cfg.yaml").write_text(
+        "%YAML:1.0\nmodel_type: PINHOLE\ncamera_name: synthetic\n"
+        f"image_width: {W}\nimage_height: {H}\n"
+        "distortion_parameters:\n   k1: 0.0\n   k2: 0.0\n   p1: 0.0\n   p2: 0.0\n"
+        f"projection_parameters:\n   fx: {float(cam.fx)}\n   fy: {float(cam.fy)}\n   cx: {float(cam.cx)}\n"
+        f"   cy: {float(cam.cy)}\n"
+        "extrinsicRotation: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: [{', '.join(str(float(v)) for v in seq.R_ic.reshape(-1).tolist())}]\n"
+        "extrinsicTranslation: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n"
+        f"   data: [{', '.join(str(float(v)) for v in seq.t_ic.tolist())}]\n"
+        "max_cnt: 100\nmin_dist: 10\nfreq: 100\nF_threshold: 1.0\nequalize: 0\nfisheye: 0\n")
+    n = len(seq.times) // 2
+    args: list = []
+    for i, sl in enumerate([slice(0, n), slice(n, None)]):
+        d = root / f"lap{i}"
+        d.mkdir()
+        for t, im in zip(seq.times[sl].tolist(), seq.images[sl].numpy()):
+            assert cv2.imwrite(str(d / f"{t:.6f}.png"), im)
+        tt = seq.times[sl].double()
+        write_vins_csv(root / f"vio{i}.csv", Trajectory(tt, seq.T_vio[sl].double(), R_to_quat(seq.R_vio[sl].double())))
+        write_tum(root / f"gt{i}.tum", Trajectory(tt, seq.T_gt[sl].double(), R_to_quat(seq.R_gt[sl].double())))
+        args += ["--images", d, "--poses", root / f"vio{i}.csv", "--ground-truth", root / f"gt{i}.tum"]
+    return ["loop", root / "cfg.yaml", *args, "--keyframe-every", 2, "--train-vocabulary", "--no-progress"]
+
+
 def small_config(tmp_path: Path, max_cnt: int = 60) -> Path:
     """``configs/euroc.yaml`` for ``CROP``-sized frames (principal point moved with the crop)."""
     text = (REPO / "configs" / "euroc.yaml").read_text()

@@ -48,7 +48,7 @@ import torch_frontend.outputs  # noqa: F401
 import torch_frontend.pipelines.loop  # noqa: F401
 import torch_frontend.pipelines.sharded  # noqa: F401
 import torch_frontend.tracker  # noqa: F401
-from tests._helpers import make_asl, small_config, truncate
+from tests._helpers import make_asl, make_loop_inputs, small_config, truncate
 from tests.conftest import REPO, sample_frames
 from torch_frontend.cli import main
 from torch_frontend.distributed import dist_env, rank_device, shard, shard_indices
@@ -274,9 +274,9 @@ def test_killed_rank_fails_within_timeout_and_next_run_cleans_up(inputs, tmp_pat
     cfg, seqs = inputs["config"], inputs["seqs"]
     out = tmp_path / "dist"
     args = ["track", cfg, "--euroc", seqs[2], "--euroc", seqs[1], "--out", out, "--no-progress", "--timeout", 30]
-    # kill rank 1 once it is writing its outputs (its temporary folder exists)
+    # kill rank 1 once it is writing its outputs (its staging folder, beside out, exists)
     res = run_ranks(args, tmp_path / "logs", kill_rank=1,
-                    kill_when=lambda: any(p.name.startswith(".stream1.") for p in out.glob(".*")))
+                    kill_when=lambda: any(tmp_path.glob(".dist.rank1.*/stream1")))
     assert res[1].rc == -signal.SIGKILL and res[0].rc == 1, res
     line = res[0].err.strip().splitlines()[-1]
     assert line.startswith("torch-frontend: error: ") and "rank 1" in line and str(seqs[1]) in line
@@ -285,11 +285,11 @@ def test_killed_rank_fails_within_timeout_and_next_run_cleans_up(inputs, tmp_pat
     one = tmp_path / "one"
     run_track(cfg, [("euroc", seqs[2])], one, TrackOptions(progress=False))
     assert_same_output_set(one, out / "stream0")
-    assert [p for p in out.glob(".stream1.*")]  # the killed rank could not remove its temporary
+    assert list(tmp_path.glob(".dist.rank1.*"))  # the killed rank could not remove its staging folder
     # the next run removes it (its process is gone) and writes a complete set
     res = run_ranks(args[:-2], tmp_path / "logs2")
     assert [r.rc for r in res] == [0, 0], res
-    assert (out / "summary.json").is_file() and no_temporaries(out)
+    assert (out / "summary.json").is_file() and no_temporaries(out) and not list(tmp_path.glob(".dist.*"))
     assert_same_output_set(one, out / "stream0")
 
 
@@ -465,41 +465,8 @@ LOOP_TIMING_KEYS = TIMING_KEYS | {"times", "keyframes_per_second"}
 
 @pytest.fixture(scope="module")
 def loop_inputs(tmp_path_factory):
-    """The demo's revisit render, small (160 x 120, 2 laps of 8 keyframes), as two image folders
-    (lap 1, lap 2) with their VIO poses and ground truth, and a config for its camera."""
-    import cv2
-
-    from torch_frontend.geometry import R_to_quat
-    from torch_frontend.pipelines import loop as loop_run
-    from torch_frontend.trajectory import Trajectory, write_tum, write_vins_csv
-
-    root = tmp_path_factory.mktemp("dist_loop")
-    W, H = 160, 120
-    seq = loop_run.demo_sequence(laps=2, keyframes_per_lap=8, width=W, height=H)
-    cam = seq.camera
-    (root / "cfg.yaml").write_text(
-        "%YAML:1.0\nmodel_type: PINHOLE\ncamera_name: synthetic\n"
-        f"image_width: {W}\nimage_height: {H}\n"
-        "distortion_parameters:\n   k1: 0.0\n   k2: 0.0\n   p1: 0.0\n   p2: 0.0\n"
-        f"projection_parameters:\n   fx: {float(cam.fx)}\n   fy: {float(cam.fy)}\n   cx: {float(cam.cx)}\n"
-        f"   cy: {float(cam.cy)}\n"
-        "extrinsicRotation: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
-        f"   data: [{', '.join(str(float(v)) for v in seq.R_ic.reshape(-1).tolist())}]\n"
-        "extrinsicTranslation: !!opencv-matrix\n   rows: 3\n   cols: 1\n   dt: d\n"
-        f"   data: [{', '.join(str(float(v)) for v in seq.t_ic.tolist())}]\n"
-        "max_cnt: 100\nmin_dist: 10\nfreq: 100\nF_threshold: 1.0\nequalize: 0\nfisheye: 0\n")
-    n = len(seq.times) // 2
-    args = []
-    for i, sl in enumerate([slice(0, n), slice(n, None)]):
-        d = root / f"lap{i}"
-        d.mkdir()
-        for t, im in zip(seq.times[sl].tolist(), seq.images[sl].numpy()):
-            assert cv2.imwrite(str(d / f"{t:.6f}.png"), im)
-        tt = seq.times[sl].double()
-        write_vins_csv(root / f"vio{i}.csv", Trajectory(tt, seq.T_vio[sl].double(), R_to_quat(seq.R_vio[sl].double())))
-        write_tum(root / f"gt{i}.tum", Trajectory(tt, seq.T_gt[sl].double(), R_to_quat(seq.R_gt[sl].double())))
-        args += ["--images", d, "--poses", root / f"vio{i}.csv", "--ground-truth", root / f"gt{i}.tum"]
-    return ["loop", root / "cfg.yaml", *args, "--keyframe-every", 2, "--train-vocabulary", "--no-progress"]
+    """The demo's revisit render, small (``tests._helpers.make_loop_inputs``): the ``loop`` arguments."""
+    return make_loop_inputs(tmp_path_factory.mktemp("dist_loop"))
 
 
 def _same_summary(a: dict, b: dict) -> None:

@@ -38,6 +38,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 from pathlib import Path
@@ -46,15 +47,18 @@ from typing import Iterator, List, Optional, Sequence, Set, Tuple
 from .errors import DataError
 
 __all__ = [
+    "CHECKPOINT_FOLDER",
     "MARKER",
     "OutputFolderError",
     "StagedFolder",
+    "adopt_staging",
     "atomic_path",
     "check_replaceable",
     "clean_stale",
     "foreign_entries",
     "legacy_temporaries",
     "replace_dir",
+    "stale_staging",
     "write_bytes_atomic",
     "write_text_atomic",
 ]
@@ -63,6 +67,9 @@ __all__ = [
 #: ``folders``, ``files``, paths relative to the folder, ``/``-separated)
 MARKER = "written-by-torch-frontend.json"
 _WRITTEN_BY = "torch-frontend"
+#: a staging folder's private sub-folder (``pipelines.checkpoint``: a long run's checkpoints),
+#: removed by :meth:`StagedFolder.commit` before the marker is written: never among the outputs
+CHECKPOINT_FOLDER = ".checkpoint"
 _TAG = "tf"  # temporaries: .<name>.tf<pid>-<random>.tmp|.old
 # how many foreign entries an error names (the walk stops there: a big foreign tree costs nothing)
 _SHOWN = 3
@@ -113,6 +120,35 @@ def _absent_or_empty(p: Path) -> bool:
         return False
     with os.scandir(p) as it:
         return next(it, None) is None
+
+
+def stale_staging(target: Path) -> List[Path]:
+    """The staging folders (``.<name>.tf<pid>-<random>.tmp``, folders) of ``target`` whose process
+    no longer runs on this machine: what a run killed outright left (``pipelines.checkpoint``
+    resumes from one), and what :func:`clean_stale` would remove. Sorted by name."""
+    target = Path(target)
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.{_TAG}(\d+)-[A-Za-z0-9_]+\.tmp")
+    try:
+        entries = [e for e in os.scandir(target.parent) if e.name.startswith(f".{target.name}.{_TAG}")]
+    except OSError:
+        return []
+    found = []
+    for e in sorted(entries, key=lambda e: e.name):
+        m = pattern.fullmatch(e.name)
+        if m is not None and not e.is_symlink() and e.is_dir() and not _pid_alive(int(m.group(1))):
+            found.append(Path(e.path))
+    return found
+
+
+def adopt_staging(stale: Path, target: Path) -> Path:
+    """Rename the stale staging folder ``stale`` of ``target`` to a fresh staging name of this
+    process (so that :func:`clean_stale`, here or in a concurrent writer, leaves it alone); returns
+    the new path, for ``StagedFolder(..., adopt=path)``."""
+    target = Path(target)
+    fresh = Path(tempfile.mkdtemp(prefix=_temp_prefix(target.name), suffix=".tmp", dir=target.parent))
+    os.rmdir(fresh)  # the name is reserved; renaming onto an empty folder fails on Windows
+    os.rename(stale, fresh)
+    return fresh
 
 
 def clean_stale(target: Path) -> List[Path]:
@@ -234,6 +270,12 @@ def check_replaceable(target: Path, legacy: Sequence[str] = ()) -> None:
     if not target.is_dir():
         raise OutputFolderError(f"{target}: cannot write the outputs here: it is a file, not a folder "
                                 f"(left as it is; choose another name)")
+    if not os.access(target, os.W_OK):
+        # the swap needs only the parent's permission: without this a protected folder (mode 0555)
+        # would be replaced as a whole, which is not what protecting it asked for
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+        raise OutputFolderError(f"{target}: not replaced: you cannot write into it (mode {mode:04o}); "
+                                f"make it writable (chmod u+w) or choose another folder")
     foreign = foreign_entries(target, legacy, limit=_SHOWN + 1)
     if foreign:
         shown = ", ".join(foreign[:_SHOWN]) + (" and more" if len(foreign) > _SHOWN else "")
@@ -372,30 +414,38 @@ class StagedFolder:
         kind: what the folder holds (``"track"``, ``"loop"``, ``"pose_graph"``: the marker's ``kind``).
         legacy: regular expressions (full match, ``/``-separated relative paths) of what this
             writer wrote before the marker existed (module docstring).
+        adopt: an existing staging folder of ``target`` to fill instead of a new one (one that
+            :func:`adopt_staging` renamed for this process: a resumed run's).
 
     Raises:
-        OutputFolderError: ``target`` holds something the library did not write, or is a file
-            (checked here, before any work, and again in :meth:`commit`).
+        OutputFolderError: ``target`` holds something the library did not write, is a file, or is
+            a folder this user cannot write into (mode 0555: protected, so not replaced); checked
+            here, before any work, and again in :meth:`commit`.
 
     ``path`` is the folder to fill. As a context manager: commits on success, removes the
     temporary folder on any exception (``KeyboardInterrupt`` included).
     """
 
-    def __init__(self, target, kind: str, legacy: Sequence[str] = ()):
+    def __init__(self, target, kind: str, legacy: Sequence[str] = (), adopt: Optional[Path] = None):
         self.target = Path(os.path.realpath(target))  # a symlinked target: its folder is rewritten
         self.kind = kind
         self.legacy = tuple(legacy)
         check_replaceable(self.target, self.legacy)
         clean_stale(self.target)
-        self.path = Path(tempfile.mkdtemp(prefix=_temp_prefix(self.target.name), suffix=".tmp",
-                                          dir=self.target.parent))
+        if adopt is not None:  # a resumed run fills the staging folder its interrupted run left
+            self.path = Path(adopt)
+        else:
+            self.path = Path(tempfile.mkdtemp(prefix=_temp_prefix(self.target.name), suffix=".tmp",
+                                              dir=self.target.parent))
         self._open = True
 
     def commit(self) -> Path:
-        """Write the marker into ``path`` and swap it in for the target; returns the target."""
+        """Remove ``path``'s checkpoints (``CHECKPOINT_FOLDER``), write the marker into ``path`` and
+        swap it in for the target; returns the target."""
         if not self._open:
             raise RuntimeError(f"{self.target}: StagedFolder already committed or aborted")
         try:
+            shutil.rmtree(self.path / CHECKPOINT_FOLDER, ignore_errors=True)
             (self.path / MARKER).write_bytes(_manifest(self.path, self.kind).encode("utf-8"))
             _set_modes(self.path)
             with _signals_deferred():

@@ -66,7 +66,8 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
                 "camera": "--camera", "workers": "--workers"}
-_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format"}
+_TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
+                "checkpoint_every": "--checkpoint-every", "resume": "--resume"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
 _LOOP_FLAGS = {
     **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
@@ -74,7 +75,7 @@ _LOOP_FLAGS = {
     "load_graph": "--load-graph", "separate_graphs": "--separate-graphs", "mode": "--pose-graph",
     "tracker_mode": "--tracker-mode", "keyframe_distance": "--keyframe-distance",
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
-    "pnp_backend": "--pnp",
+    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
 }
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
@@ -328,7 +329,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     _check_inputs(config, sources, "--euroc DIR, --bag PATH, --images DIR or --rig FILE")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
-                       bag_imu=not args.no_bag_imu)
+                       bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume)
     config = _resolved_config(config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
@@ -355,6 +356,7 @@ def _cmd_loop(args: argparse.Namespace) -> int:
         separate_graphs=args.separate_graphs, mode=args.pose_graph, tracker_mode=args.tracker_mode,
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
+        checkpoint_every=args.checkpoint_every, resume=args.resume,
     )
     config = _resolved_config(config, sources, opt)
     if _sharded():
@@ -589,7 +591,21 @@ def _add_track(sub) -> None:
     rb.add_argument("--bag-images", action="store_true", help="add /feature_tracker/feature_img")
     rb.add_argument("--no-bag-imu", action="store_true",
                     help="do not copy the input's IMU (the config's imu_topic; EuRoC imu0/data.csv) into the bag")
+    _add_checkpoint_options(track)
     track.set_defaults(func=_cmd_track, flags=_TRACK_FLAGS)
+
+
+def _add_checkpoint_options(p: argparse.ArgumentParser) -> None:
+    """``--checkpoint-every`` and ``--resume`` (``pipelines.checkpoint``)."""
+    ck = p.add_argument_group("checkpoints and resuming (long runs; docs/cli.md#checkpoints)")
+    ck.add_argument("--checkpoint-every", type=_non_negative_int, default=None, metavar="N",
+                    help="write a checkpoint every N frames, inside the run's hidden staging folder beside --out "
+                         "(default: every 500 frames or 60 s, whichever first; 0: none)")
+    ck.add_argument("--resume", action="store_true",
+                    help="continue the interrupted run of this --out (killed, preempted, Ctrl-C) from its last "
+                         "checkpoint; the finished outputs equal an uninterrupted run's. Refused, naming what "
+                         "differs, when the inputs, config or options differ; with no checkpoint to continue "
+                         "from, the run starts from the first frame (a note says so)")
 
 
 def _add_demo(sub) -> None:
@@ -678,6 +694,7 @@ def _add_loop(sub) -> None:
                       help="cpu or cuda (default: cpu; under torchrun cuda:LOCAL_RANK when CUDA is present)")
     loop.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_threads(loop)
+    _add_checkpoint_options(loop)
     loop.set_defaults(func=_cmd_loop, flags=_LOOP_FLAGS)
 
 
@@ -896,6 +913,9 @@ def main(argv: List[str] | None = None) -> int:
         detail = getattr(exc, "detail", None)
         msg = (f"interrupted{' (SIGTERM)' if term else ''}: no partial output left (the output folder holds "
                f"its previous complete outputs, or this run's if it had finished writing them)")
+        if getattr(exc, "resumable", False):
+            msg = (f"interrupted{' (SIGTERM)' if term else ''}: the output folder holds its previous complete outputs; "
+                   f"this run's last checkpoint is kept: rerun the same command with --resume to continue from it")
         if detail:  # a sharded run: who had not finished (torchrun stops every rank when one dies)
             msg = (f"interrupted{' (SIGTERM)' if term else ''}: {detail}; no merged summary written (complete "
                    f"per-input outputs stay)")

@@ -84,6 +84,16 @@ LEGACY_OUTPUTS = (
 # the recorder
 
 
+def _remove(p: Path) -> None:
+    """Remove the file or folder ``p`` if it exists."""
+    import shutil
+
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    elif os.path.lexists(p):
+        p.unlink()
+
+
 def run_counts(streams: int, frames: int, published: int, published_features: int, lengths, seconds: float,
                skipped: List[Dict[str, Any]], track_images: int) -> Dict[str, Any]:
     """The counts that open ``summary.json`` (one process, or the merge of a sharded run's inputs):
@@ -160,6 +170,9 @@ class RunRecorder:
             :func:`bag_names`; ``io.feature_bag``, ``docs/ros.md``), part of the output set.
         bag_format: ``"ros1"`` or ``"ros2"`` (default: ``.bag`` names ROS 1, others ROS 2).
         bag_images: add ``/feature_tracker/feature_img`` to the bags.
+        adopt: the staging folder of an interrupted run to continue in (``pipelines.checkpoint``;
+            then :meth:`restore` the recorder's state from its checkpoint).
+        journal: keep what was recorded since the last :meth:`take_chunk` (a checkpointed run).
 
     Raises:
         OutputFolderError: ``out`` holds files the library did not write (nothing is touched).
@@ -169,7 +182,8 @@ class RunRecorder:
     """
 
     def __init__(self, out, stream_names: Sequence[str], write_tracks: bool = True, bag: str | None = None,
-                 bag_format: str | None = None, bag_images: bool = False):
+                 bag_format: str | None = None, bag_images: bool = False, adopt: Path | None = None,
+                 journal: bool = False):
         self.out = Path(out)
         self.names = list(stream_names)
         self.B = len(self.names)
@@ -182,14 +196,18 @@ class RunRecorder:
         self.track_images = 0
         self._size: tuple | None = None  # (H, W) of the frames, pixels (track_paths.png's axes)
         self._tmp_tracks: Path | None = None
+        self.journal = bool(journal)
+        #: leave the staging folder on SIGINT/SIGTERM (set once a checkpoint is in it)
+        self.keep_on_interrupt = False
+        self._marks = (0, 0, [0] * self.B)  # _rows, _lengths, per_frame entries already in chunks
         # created first, so that a file at ``out`` or a read-only place fails before the run; a
         # file at ``out`` is StagedFolder's "is a file, not a folder" (mkdir's would be "File exists")
         if not os.path.lexists(self.out):
             self.out.mkdir(parents=True, exist_ok=True)
-        self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS)
+        self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS, adopt=adopt)
         if self.write_tracks:
             self._tmp_tracks = self._stage.path / "tracks"
-            self._tmp_tracks.mkdir()
+            self._tmp_tracks.mkdir(exist_ok=adopt is not None)
         self.bag_names = bag_names(bag, self.B, bag_format) if bag else []
         self._bags: List[Any] = []
         self.bag_images = bool(bag_images)
@@ -198,7 +216,11 @@ class RunRecorder:
 
             try:
                 for name in self.bag_names:
+                    if adopt is not None:  # the interrupted run's bag: rewritten from its journal (restore)
+                        _remove(self._stage.path / name)
                     self._bags.append(FeatureBagWriter(self._stage.path / name, bag_format, images=bag_images))
+                    if self.journal:
+                        self._bags[-1].journal = []
             except BaseException:
                 self.abort()
                 raise
@@ -209,7 +231,15 @@ class RunRecorder:
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is not None:
-            self.abort()
+            if self.keep_on_interrupt and issubclass(exc_type, KeyboardInterrupt):
+                # SIGINT / SIGTERM (a preemption) after a checkpoint: the staging folder stays,
+                # for --resume (the next run without it removes it as a stale temporary)
+                self._stage = None
+                self._bags = []
+                self._tmp_tracks = None
+                exc.resumable = True  # the CLI's message: rerun with --resume
+            else:
+                self.abort()
         return False
 
     def abort(self) -> None:
@@ -221,6 +251,55 @@ class RunRecorder:
             self._stage.abort()
         self._stage = None
         self._tmp_tracks = None
+
+    @property
+    def stage_path(self) -> Path | None:
+        """The staging folder being filled (None once written or aborted)."""
+        return None if self._stage is None else self._stage.path
+
+    # -- checkpoints (pipelines.checkpoint): the counters, and what was recorded since the last chunk
+    def counters(self) -> Dict[str, Any]:
+        """The recorder's counters as plain values (a checkpoint's; the rows are in the chunks)."""
+        return {"frames": self.frames.tolist(), "published": self.published.tolist(),
+                "track_images": int(self.track_images), "size": self._size,
+                "bags": [w.header_state() for w in self._bags]}
+
+    def take_chunk(self) -> Dict[str, Any]:
+        """What was recorded since the last call (rows, track lengths, per-frame counts, bag
+        messages), concatenated: the next append-only chunk of a checkpoint."""
+        r0, l0, p0 = self._marks
+        rows = self._rows[r0:]
+        chunk = {
+            "rows": {k: np.concatenate([r[k] for r in rows]) for k in rows[0]} if rows else None,
+            "lengths": np.concatenate(self._lengths[l0:]) if len(self._lengths) > l0 else None,
+            "per_frame": [pf[p0[b]:] for b, pf in enumerate(self.per_frame)],
+            "bags": [list(w.journal or ()) for w in self._bags],
+        }
+        for w in self._bags:
+            if w.journal is not None:
+                w.journal.clear()
+        # one entry per chunk from now on (equal columns: np.concatenate of the pieces is the same)
+        if rows:
+            self._rows[r0:] = [chunk["rows"]]
+        if chunk["lengths"] is not None:
+            self._lengths[l0:] = [chunk["lengths"]]
+        self._marks = (len(self._rows), len(self._lengths), [len(pf) for pf in self.per_frame])
+        return chunk
+
+    def restore(self, counters: Dict[str, Any], chunks: Sequence[Dict[str, Any]]) -> None:
+        """Continue from a checkpoint: its :meth:`counters` and every chunk (:meth:`take_chunk`) it
+        covers, in order. The track images of the checkpointed frames are in the adopted staging
+        folder already; the bags are written again from the chunks' messages."""
+        self._rows = [c["rows"] for c in chunks if c["rows"] is not None]
+        self._lengths = [c["lengths"] for c in chunks if c["lengths"] is not None]
+        self.per_frame = [[e for c in chunks for e in c["per_frame"][b]] for b in range(self.B)]
+        self.frames = np.asarray(counters["frames"], dtype=np.int64)
+        self.published = np.asarray(counters["published"], dtype=np.int64)
+        self.track_images = int(counters["track_images"])
+        self._size = None if counters["size"] is None else tuple(counters["size"])
+        for b, w in enumerate(self._bags):
+            w.replay([m for c in chunks for m in c["bags"][b]], counters["bags"][b])
+        self._marks = (len(self._rows), len(self._lengths), [len(pf) for pf in self.per_frame])
 
     # -- per step
     def add(self, batch, frame) -> None:

@@ -135,5 +135,19 @@ def init_process_group(device=None, timeout: float = DEFAULT_TIMEOUT) -> bool:
     backend = "cpu:gloo,cuda:nccl" if dev.type == "cuda" and dist.is_nccl_available() else "gloo"
     if dev.type == "cuda":
         torch.cuda.set_device(dev)
-    dist.init_process_group(backend=backend, timeout=datetime.timedelta(seconds=float(timeout)))
+    td = datetime.timedelta(seconds=float(timeout))
+    attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT", "").strip()
+    if attempt:
+        # torch elastic keeps one store for every start of the worker group (the agent's, shared
+        # across its restarts): the previous start's keys, its ranks' gloo addresses among them,
+        # are still there, and a restarted rank may read a dead peer's address before the new
+        # peer writes its own ("connection refused": 2 of the first 4 restarts tried here). The keys of
+        # each start under their own prefix keep them apart.
+        from torch.distributed.rendezvous import rendezvous
+
+        store, rank, world = next(rendezvous("env://", timeout=td))
+        dist.init_process_group(backend=backend, timeout=td, rank=rank, world_size=world,
+                                store=dist.PrefixStore(f"torch-frontend/start-{attempt}", store))
+        return True
+    dist.init_process_group(backend=backend, timeout=td)
     return True

@@ -151,6 +151,9 @@ class FeatureBagWriter:
             self._conns[IMAGE_TOPIC] = self._w.add_connection(IMAGE_TOPIC, IMAGE, typestore=self.ts)
         self._seq = {}
         self.counts = {}
+        #: a list: every message written (``(topic, stamp_ns, raw bytes)``) is appended to it too,
+        #: so that a checkpointed run can write the same bag again (:meth:`replay`); None: not kept
+        self.journal: Optional[list] = None
         self._open = True
 
     # -- messages
@@ -163,8 +166,23 @@ class FeatureBagWriter:
         return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id, **kw)
 
     def _write(self, topic: str, stamp_ns: int, msg, msgtype: str) -> None:
-        self._w.write(self._conns[topic], int(stamp_ns), self._ser(msg, msgtype))
+        raw = self._ser(msg, msgtype)
+        self._w.write(self._conns[topic], int(stamp_ns), raw)
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        if self.journal is not None:
+            self.journal.append((topic, int(stamp_ns), bytes(raw)))
+
+    def header_state(self) -> dict:
+        """The per-topic header ``seq`` and message counts (plain dicts), for a checkpoint."""
+        return {"seq": dict(self._seq), "counts": dict(self.counts)}
+
+    def replay(self, journal, state: dict) -> None:
+        """Write again the messages of an earlier writer's ``journal`` (in order, the same bytes)
+        and take its :meth:`header_state`: a new bag continues where that writer stood."""
+        for topic, stamp_ns, raw in journal:
+            self._w.write(self._conns[topic], int(stamp_ns), raw)
+        self._seq = dict(state["seq"])
+        self.counts = dict(state["counts"])
 
     def write_features(self, m: FeatureMessage) -> None:
         """One ``/feature_tracker/feature`` message (points in the order given)."""

@@ -24,7 +24,7 @@ Convention:
 
 from __future__ import annotations
 
-from typing import Optional, Tuple, Union
+from typing import Any, Dict, Optional, Tuple, Union
 
 import torch
 
@@ -110,6 +110,33 @@ class PlaceDatabase:
         if n and (int(s.min()) < 0 or int(s.max()) >= self.num_streams):
             raise ValueError(f"streams: ids must be in [0, {self.num_streams})")
         return s
+
+    # -- state -----------------------------------------------------------------------------------
+    STATE_VERSION = 1
+
+    def state_dict(self) -> Dict[str, Any]:
+        """The database as CPU tensors (a checkpoint's part): both posting runs as they are (the
+        split into main and tail decides the order of the score sums, so it is kept), the stream
+        sizes, and the word count, stream count and dtype it was built with."""
+        return {"kind": "PlaceDatabase", "version": self.STATE_VERSION, "num_words": self.num_words,
+                "num_streams": self.num_streams, "dtype": str(self.dtype).replace("torch.", ""),
+                "main": [t.cpu() for t in self._main], "tail": [t.cpu() for t in self._tail],
+                "size": list(self._size_host)}
+
+    def load_state_dict(self, state: Dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` onto this database's device; ``StateError`` (nothing
+        changed) for another version, word count, stream count or dtype."""
+        from .state import check_same, check_state
+
+        check_state(state, "PlaceDatabase", self.STATE_VERSION, ("num_words", "num_streams", "main", "tail", "size"))
+        for key, here in (("num_words", self.num_words), ("num_streams", self.num_streams),
+                          ("dtype", str(self.dtype).replace("torch.", ""))):
+            check_same("PlaceDatabase", key, state[key], here)
+        dt = (torch.int64, torch.int64, self.dtype)
+        self._main = tuple(t.to(self.device, d) for t, d in zip(state["main"], dt))
+        self._tail = tuple(t.to(self.device, d) for t, d in zip(state["tail"], dt))
+        self._size_host = [int(n) for n in state["size"]]
+        self._size = torch.tensor(self._size_host, dtype=torch.int64, device=self.device)
 
     # -- add --------------------------------------------------------------------------------------
     def add(self, bow: BowVector, stream: int = 0) -> int:

@@ -32,7 +32,7 @@ from .features import brief as _brief
 from .features import fast as _fast
 from .features import hamming
 
-__all__ = ["KeyFrame", "describe_keyframes", "match_brief"]
+__all__ = ["KeyFrame", "describe_keyframes", "keyframes_from_state", "keyframes_state", "match_brief"]
 
 _F64 = torch.float64
 Tensor = torch.Tensor
@@ -402,3 +402,87 @@ class KeyFrame:
             has_loop=int(loop_index) != -1, loop_index=int(loop_index), loop_info=info,
         )
 
+
+
+# ------------------------------------------------------------------------------------ state
+KEYFRAMES_STATE_VERSION = 1
+#: fields a keyframe never changes once built, ragged: (name, its count per keyframe, dtype, trailing shape)
+_RAGGED = (("point_3d", "n_points", _F64, (3,)), ("point_2d_uv", "n_points", torch.float32, (2,)),
+           ("point_2d_norm", "n_points", _F64, (2,)), ("point_id", "n_points", torch.int64, ()),
+           ("window_brief", "n_points", torch.int64, (4,)), ("keypoints", "n_keypoints", torch.float32, (2,)),
+           ("keypoints_norm", "n_keypoints", _F64, (2,)), ("brief", "n_keypoints", torch.int64, (4,)))
+#: fields the pose graph moves (and the origin pose, small), stacked: (name, shape per keyframe)
+#: the keys of a ``keyframes_state`` that hold ``keyframes[since:]`` only (the append-only part)
+KEYFRAME_STATIC_KEYS = ("start", "time", "sequence", *(r[0] for r in _RAGGED), "n_points", "n_keypoints", "images")
+_POSES = (("origin_vio_T", (3,)), ("origin_vio_R", (3, 3)), ("vio_T", (3,)), ("vio_R", (3, 3)), ("T_w_i", (3,)),
+          ("R_w_i", (3, 3)), ("loop_info", (8,)))
+
+
+def keyframes_state(keyframes, since: int = 0) -> Dict[str, object]:
+    """The state of a list of ``KeyFrame`` (every field, exactly) as CPU tensors, the part that
+    never changes only for ``keyframes[since:]`` (an append-only chunk: a checkpoint writes a
+    keyframe's points and descriptors once; :func:`keyframes_from_state` takes the chunks in
+    order).
+
+    Per keyframe of ``keyframes[since:]``: ``time (k,)`` float64, ``sequence (k,)`` int64, the
+    point and keypoint arrays concatenated with ``n_points``/``n_keypoints (k,)``, ``images`` (a
+    list: ``(H, W)`` uint8 or None). Per keyframe of all ``K``: ``index``/``loop_index (K,)``
+    int64, ``has_loop (K,)`` bool and the poses stacked (``origin_vio_T (K, 3)``, ...,
+    ``loop_info (K, 8)``)."""
+    from .state import pack_ragged
+
+    kfs = list(keyframes)
+    new = kfs[since:]
+    st: Dict[str, object] = {"kind": "KeyFrames", "version": KEYFRAMES_STATE_VERSION, "start": int(since),
+                             "count": len(kfs), "time": torch.tensor([k.time for k in new], dtype=_F64),
+                             "sequence": torch.tensor([int(k.sequence) for k in new], dtype=torch.int64)}
+    for name, count, dtype, tail in _RAGGED:
+        if name in ("window_brief", "brief") and new:
+            tail = tuple(getattr(new[0], name).shape[1:])
+        st[name], st[count] = pack_ragged([getattr(k, name) for k in new], torch.zeros(0, *tail, dtype=dtype))
+    st["images"] = [None if k.image is None else k.image.detach().cpu() for k in new]
+    for name in ("index", "loop_index"):
+        st[name] = torch.tensor([int(getattr(k, name)) for k in kfs], dtype=torch.int64)
+    st["has_loop"] = torch.tensor([bool(k.has_loop) for k in kfs], dtype=torch.bool)
+    for name, shape in _POSES:
+        st[name] = (torch.stack([getattr(k, name).detach().to(_F64).cpu() for k in kfs]) if kfs
+                    else torch.zeros(0, *shape, dtype=_F64))
+    return st
+
+
+def keyframes_from_state(states, device=None):
+    """The ``KeyFrame`` list of one :func:`keyframes_state` (``since=0``) or of its chunks in the
+    order they were written (the last one gives the poses), on ``device`` (default CPU). Raises
+    ``StateError`` for a state of another kind or version, or chunks that do not follow."""
+    from .state import StateError, check_state, split_ragged
+
+    chunks = list(states) if isinstance(states, (list, tuple)) else [states]
+    if not chunks:
+        return []
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    static: Dict[str, list] = {name: [] for name in ("time", "sequence", "images", *(r[0] for r in _RAGGED))}
+    for st in chunks:
+        check_state(st, "KeyFrames", KEYFRAMES_STATE_VERSION, ("start", "count", "time", "index", "n_points"))
+        if int(st["start"]) != len(static["time"]):
+            raise StateError(f"KeyFrames state: a chunk starting at keyframe {int(st['start'])} does not follow "
+                             f"the {len(static['time'])} keyframes before it (a chunk is missing)")
+        static["time"] += st["time"].tolist()
+        static["sequence"] += st["sequence"].tolist()
+        static["images"] += list(st["images"])
+        for name, count, _, _ in _RAGGED:
+            static[name] += split_ragged(st[name], st[count], dev)
+    last = chunks[-1]
+    K = int(last["count"])
+    if K != len(static["time"]):
+        raise StateError(f"KeyFrames state: {K} keyframes, but the chunks hold {len(static['time'])}")
+    poses = {name: last[name].to(dev) for name, _ in _POSES}
+    index, loop_index, has_loop = last["index"].tolist(), last["loop_index"].tolist(), last["has_loop"].tolist()
+    out = []
+    for k in range(K):  # keyframes, not points
+        img = static["images"][k]
+        out.append(KeyFrame(time=float(static["time"][k]), sequence=int(static["sequence"][k]),
+                            **{name: static[name][k] for name, _, _, _ in _RAGGED},
+                            **{name: poses[name][k].clone() for name, _ in _POSES},
+                            index=int(index[k]), has_loop=bool(has_loop[k]), loop_index=int(loop_index[k]),
+                            image=None if img is None else img.to(dev)))
+    return out

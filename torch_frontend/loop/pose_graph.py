@@ -49,7 +49,7 @@ from .database import PlaceDatabase
 from .keyframe import KeyFrame, match_brief
 from .vocabulary import Vocabulary
 
-__all__ = ["LoopResult", "PoseGraph", "verify_loops"]
+__all__ = ["LoopResult", "PoseGraph", "loop_results_from_state", "loop_results_state", "verify_loops"]
 
 PathLike = Union[str, Path]
 _F64 = torch.float64
@@ -88,6 +88,51 @@ class LoopResult:
     @property
     def loop_info(self) -> np.ndarray:
         return np.concatenate([self.relative_t, self.relative_q, [self.relative_yaw]])
+
+
+LOOP_RESULTS_STATE_VERSION = 1
+
+
+def loop_results_state(results: Sequence[LoopResult]) -> Dict[str, object]:
+    """A list of :class:`LoopResult` as CPU tensors and lists (``loop.state``): per result the
+    indices, counts, flags, score, reason and relative pose, and the inlier pixels concatenated
+    with their counts (-1: none)."""
+    from .state import pack_ragged
+
+    rs = list(results)
+    uv_n = torch.tensor([-1 if r.cur_uv is None else int(r.cur_uv.shape[0]) for r in rs], dtype=torch.int64)
+    old_n = torch.tensor([-1 if r.old_uv is None else int(r.old_uv.shape[0]) for r in rs], dtype=torch.int64)
+    empty = torch.zeros(0, 2, dtype=_F64)
+    cur_uv, _ = pack_ragged([torch.from_numpy(np.asarray(r.cur_uv, dtype=np.float64)) for r in rs
+                             if r.cur_uv is not None], empty)
+    old_uv, _ = pack_ragged([torch.from_numpy(np.asarray(r.old_uv, dtype=np.float64)) for r in rs
+                             if r.old_uv is not None], empty)
+    ints = torch.tensor([[r.index, r.old_index, r.num_matches, r.num_inliers, int(r.accepted)] for r in rs],
+                        dtype=torch.int64).reshape(-1, 5)
+    return {"kind": "LoopResults", "version": LOOP_RESULTS_STATE_VERSION, "ints": ints,
+            "score": torch.tensor([float(r.score) for r in rs], dtype=_F64), "reason": [r.reason for r in rs],
+            "relative_t": torch.tensor(np.array([r.relative_t for r in rs], dtype=np.float64).reshape(-1, 3)),
+            "relative_q": torch.tensor(np.array([r.relative_q for r in rs], dtype=np.float64).reshape(-1, 4)),
+            "relative_yaw": torch.tensor([float(r.relative_yaw) for r in rs], dtype=_F64),
+            "cur_uv": cur_uv, "cur_uv_n": uv_n, "old_uv": old_uv, "old_uv_n": old_n}
+
+
+def loop_results_from_state(state: Dict[str, object]) -> List[LoopResult]:
+    """The :class:`LoopResult` list of :func:`loop_results_state`."""
+    from .state import check_state, split_ragged
+
+    st = check_state(state, "LoopResults", LOOP_RESULTS_STATE_VERSION, ("ints", "score", "reason"))
+
+    def ragged(name):
+        n = st[f"{name}_n"]
+        parts = iter(split_ragged(st[name], n[n >= 0]))
+        return [None if int(k) < 0 else next(parts).numpy() for k in n.tolist()]
+
+    cur, old = ragged("cur_uv"), ragged("old_uv")
+    ints, score, yaw = st["ints"].tolist(), st["score"].tolist(), st["relative_yaw"].tolist()
+    rt, rq = st["relative_t"].numpy(), st["relative_q"].numpy()
+    return [LoopResult(int(i[0]), int(i[1]), float(score[k]), bool(i[4]), str(st["reason"][k]), int(i[2]), int(i[3]),
+                       rt[k].copy(), rq[k].copy(), float(yaw[k]), cur[k], old[k]) for k, i in enumerate(ints)]
 
 
 def _pad(rows: Sequence[torch.Tensor], width: int, fill=0):
@@ -545,6 +590,71 @@ class PoseGraph:
         path = Path(path)
         write_text_atomic(path, self.csv_text())
         return path
+
+    # ------------------------------------------------------------------------------ state
+    STATE_VERSION = 1
+
+    def _settings(self) -> Dict[str, object]:
+        """What the graph was built with (a state is refused by a graph built otherwise)."""
+        return {"mode": self.mode, "pnp_backend": self.pnp_backend, "auto_optimize": bool(self.auto_optimize),
+                "optimize_iters": int(self.optimize_iters), "min_loop_gap": int(self.min_loop_gap),
+                "save_images": bool(self.save_images), "R_ic": self.R_ic.cpu(), "t_ic": self.t_ic.cpu(),
+                "words": None if self.vocabulary is None else int(self.vocabulary.num_words)}
+
+    def state_dict(self, since: int = 0) -> Dict[str, object]:
+        """Everything the graph needs to go on exactly as if it had never stopped, as CPU tensors
+        and Python values (``loop.state``): the keyframes (every field; their points and
+        descriptors only from keyframe ``since`` on: ``keyframe.keyframes_state``'s append-only
+        chunks), the place database, every verified candidate, the scores, the counters, the
+        per-sequence transforms, the queued loops, the RANSAC generator's state, and the settings
+        it was built with. The camera and the vocabulary are not in it (the graph's constructor
+        takes them)."""
+        from .keyframe import keyframes_state
+
+        seq = {int(s): {"w_r_vio": st.w_r_vio.cpu(), "w_t_vio": st.w_t_vio.cpu(), "r_drift": st.r_drift.cpu(),
+                        "t_drift": st.t_drift.cpu(), "merged": bool(st.merged)} for s, st in self._seq.items()}
+        return {"kind": "PoseGraph", "version": self.STATE_VERSION, "settings": self._settings(),
+                "keyframes": keyframes_state(self.keyframes, since),
+                "db": None if self.db is None else self.db.state_dict(),
+                "loops": loop_results_state(self.loops),
+                "scores": torch.tensor(self.scores, dtype=_F64),
+                "global_index": int(self.global_index), "earliest_loop_index": int(self.earliest_loop_index),
+                "yaw_drift": float(self.yaw_drift), "base_sequence": int(self.base_sequence), "sequences": seq,
+                "pending": [int(i) for i in self._pending], "num_optimizations": int(self.num_optimizations),
+                "optimize_seconds": float(self.optimize_seconds), "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state) -> None:
+        """Restore one :meth:`state_dict` (``since=0``), or its chunks in the order they were
+        written (the last one gives everything but the keyframes' points and descriptors), into
+        this graph (built with the same settings and a vocabulary of the same size), onto its
+        device. Raises ``StateError`` naming the first setting that differs, or for a state of
+        another version; nothing changes then."""
+        from .keyframe import keyframes_from_state
+        from .state import check_same, check_state
+
+        chunks = list(state) if isinstance(state, (list, tuple)) else [state]
+        here = self._settings()
+        for c in chunks:
+            check_state(c, "PoseGraph", self.STATE_VERSION, ("settings", "keyframes", "loops", "generator"))
+            for key, v in c["settings"].items():
+                check_same("PoseGraph", key, v, here.get(key))
+        st = chunks[-1]
+        keyframes = keyframes_from_state([c["keyframes"] for c in chunks], self.device)
+        loops = loop_results_from_state(st["loops"])
+        if self.db is not None:
+            db = PlaceDatabase(self.vocabulary)
+            db.load_state_dict(st["db"])
+            self.db = db
+        self.keyframes, self.loops = keyframes, loops
+        self.scores = [float(x) for x in st["scores"].tolist()]
+        self.global_index, self.earliest_loop_index = int(st["global_index"]), int(st["earliest_loop_index"])
+        self.yaw_drift, self.base_sequence = float(st["yaw_drift"]), int(st["base_sequence"])
+        dev = self.device
+        self._seq = {int(s): _SeqState(v["w_r_vio"].to(dev), v["w_t_vio"].to(dev), v["r_drift"].to(dev),
+                                       v["t_drift"].to(dev), bool(v["merged"])) for s, v in st["sequences"].items()}
+        self._pending = [int(i) for i in st["pending"]]
+        self.num_optimizations, self.optimize_seconds = int(st["num_optimizations"]), float(st["optimize_seconds"])
+        self.generator.set_state(st["generator"])
 
     # ------------------------------------------------------------------------------ persistence
     def save(self, directory: PathLike) -> Path:

@@ -313,9 +313,10 @@ def check_out_folder(out) -> None:
     check_replaceable(Path(os.path.realpath(out)), LEGACY_OUTPUTS)
 
 
-def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True) -> List[Path]:
+def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True, stage=None) -> List[Path]:
     """Write every output of ``run`` (a ``LoopRun``) and swap the set in for ``out`` (module
-    docstring); returns the paths under ``out``."""
+    docstring); returns the paths under ``out``. ``stage``: the run's ``StagedFolder`` of ``out``
+    when it has one already (a checkpointed run's), filled and committed here."""
     from ..trajectory import write_tum, write_vins_csv
 
     t_all = time.perf_counter()
@@ -323,7 +324,12 @@ def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True) ->
     out.parent.mkdir(parents=True, exist_ok=True)
     written: List[Path] = []
     B = len(run.streams)
-    with StagedFolder(out, "loop", LEGACY_OUTPUTS) as stage:
+    own = stage is None
+    if own:
+        stage = StagedFolder(out, "loop", LEGACY_OUTPUTS)
+    else:
+        _clear_outputs(stage.path)
+    try:
         tmp = stage.path
         for s in run.streams:
             d = stream_dir(tmp, s.stream, B)
@@ -351,7 +357,28 @@ def write_loop_outputs(out, run, plots: bool = True, save_graph: bool = True) ->
             times["outputs"] = round(time.perf_counter() - t_all, 6)
         (tmp / "summary.json").write_bytes((json.dumps(_json_safe(run.summary), indent=2) + "\n").encode("utf-8"))
         written.append(out / "summary.json")
+    except BaseException:
+        if own:  # a checkpointed run's staging folder is its owner's to keep or remove
+            stage.abort()
+        raise
+    stage.commit()
     return written
+
+
+def _clear_outputs(stage: Path) -> None:
+    """Remove what an interrupted writer left in a resumed run's staging folder (everything but
+    its checkpoints: the outputs are written in one go, at the end)."""
+    import shutil
+
+    from .._atomic import CHECKPOINT_FOLDER
+
+    for e in os.scandir(stage):
+        if e.name == CHECKPOINT_FOLDER:
+            continue
+        if e.is_dir(follow_symlinks=False):
+            shutil.rmtree(e.path)
+        else:
+            os.unlink(e.path)
 
 
 def graph_dir(out: Path, graph: int, run) -> Path:

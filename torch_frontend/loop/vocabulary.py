@@ -625,6 +625,26 @@ class Vocabulary:
         return voc
 
     # -- persistence ------------------------------------------------------------------------------
+    STATE_VERSION = 1
+
+    def state_dict(self) -> dict:
+        """The vocabulary as CPU tensors (what :meth:`save` writes, for a checkpoint)."""
+        return {"kind": "Vocabulary", "version": self.STATE_VERSION, "k": self.k, "L": self.L,
+                "scoring": self.scoring, "weighting": self.weighting, "parent": self.parent.cpu(),
+                "node_desc": self.node_desc.cpu(), "node_weight": self.node_weight.cpu(),
+                "node_word": self.node_word.cpu(), "order": torch.from_numpy(self._order())}
+
+    @classmethod
+    def from_state_dict(cls, state: dict, device=None) -> Vocabulary:
+        """The vocabulary of :meth:`state_dict` (on ``device``); ``StateError`` for another version."""
+        from .state import check_state
+
+        st = check_state(state, "Vocabulary", cls.STATE_VERSION, ("k", "L", "parent", "node_desc", "node_weight",
+                                                                  "node_word", "order"))
+        voc = cls(int(st["k"]), int(st["L"]), st["parent"], st["node_desc"], st["node_weight"], st["node_word"],
+                  int(st["scoring"]), int(st["weighting"]), order=st["order"].numpy(), source="a checkpoint's vocabulary")
+        return voc.to(device) if device is not None else voc
+
     def _order(self) -> np.ndarray:
         ch = self.children.cpu().numpy()
         return np.concatenate([[0], ch[ch >= 0]]).astype(np.int64)

@@ -132,6 +132,13 @@ class LoopOptions(InputOptions):
         describe_batch: keyframes per batched description call.
         seed: seed of vocabulary sampling/training and of the pose graph's RANSAC.
         keep_images: keep the keyframe images in ``LoopRun.images`` (for plots of matches).
+        checkpoint_every: with ``out``, write a checkpoint (``pipelines.loop_checkpoint``, inside
+            the run's staging folder) every this many frames while tracking and every this many
+            keyframes while building the pose graph; None: every 500 or 60 s, whichever first;
+            0: none.
+        resume: continue the interrupted run of the same ``out`` from its last checkpoint
+            (``checkpoint.ResumeError`` when it was another run: inputs, poses, config, options);
+            no checkpoint to continue from: start from the first frame (a ``DataWarning`` says so).
     """
 
     vocabulary: Any = None
@@ -155,6 +162,8 @@ class LoopOptions(InputOptions):
     describe_batch: int = 8
     seed: int = 0
     keep_images: bool = False
+    checkpoint_every: Optional[int] = None
+    resume: bool = False
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
@@ -181,6 +190,11 @@ class LoopOptions(InputOptions):
                                                 f"got {self.keyframe_angle}")
         if not self.max_pose_gap > 0:
             raise OptionError("max_pose_gap", f"max_pose_gap: expected > 0, got {self.max_pose_gap}")
+        if self.checkpoint_every is not None and (isinstance(self.checkpoint_every, bool)
+                                                  or not isinstance(self.checkpoint_every, int)
+                                                  or self.checkpoint_every < 0):
+            raise OptionError("checkpoint_every", f"checkpoint_every: expected an integer >= 0 (frames; 0: no "
+                                                  f"checkpoints), got {self.checkpoint_every!r}")
 
 
 @dataclass
@@ -377,8 +391,15 @@ def run_loop(config, sources: Sequence[Source], poses: Sequence[Any], out: Optio
         check_out_folder(out)
     times: Dict[str, float] = {}
     inp = _open_inputs(config, sources, poses, gts, opt, times)
-    prep = _prepare_streams(inp, opt, times)
-    return _finish(inp, prep, opt, times, t_start, out, extra_summary)
+    if out is None:
+        prep = _prepare_streams(inp, opt, times)
+        return _finish(inp, prep, opt, times, t_start, out, extra_summary)
+    from .loop_checkpoint import LoopCheckpoints, loop_fingerprint
+
+    fp = loop_fingerprint(inp.cfgs, sources, inp.seqs, poses, gts, opt, inp.device)
+    with LoopCheckpoints(out, fp, opt.checkpoint_every, opt.resume) as ck:
+        prep = _prepare_streams(inp, opt, times, ck=ck)
+        return _finish(inp, prep, opt, times, t_start - ck.before, out, extra_summary, ck=ck)
 
 
 @dataclass
@@ -395,11 +416,14 @@ class _Prepared:
     skipped_per_stream: List[int] = field(default_factory=list)
 
 
-def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None) -> _Prepared:
+def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None, ck=None) -> _Prepared:
     """Stages 1-4: tracking (B streams in one batch), keyframes, triangulation, description. Each
     stream's results are its own (the stages treat streams independently). ``beat``: called per
-    tracker step (a sharded run's heartbeat)."""
-    logs, skipped, input_times, per_stream = _track(inp, opt, times, beat)
+    tracker step (a sharded run's heartbeat). ``ck``: the run's ``LoopCheckpoints`` (or None):
+    tracking checkpoints, and a resume past tracking takes stages 1-4 from its checkpoint."""
+    if ck is not None and ck.past_tracking:
+        return _prepared_from_checkpoint(inp, opt, times, ck)
+    logs, skipped, input_times, per_stream = _track(inp, opt, times, beat, ck)
     t0 = _time.perf_counter()
     tri = [triangulate_keyframes(log, inp.R_ics[b], inp.t_ics[b], opt.triangulation_chunk, opt.track_window)
            for b, log in enumerate(logs)]
@@ -417,20 +441,46 @@ def _prepare_streams(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], be
     return _Prepared(logs, skipped, tri, descs, input_times, per_stream)
 
 
+def _prepared_from_checkpoint(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], ck) -> _Prepared:
+    """Stages 1-4 of a run resumed past them: the logs from every chunk, the points and
+    descriptors from the prepared chunk, the times and counts from its state."""
+    logs = _new_logs(inp, opt)
+    for b, log in enumerate(logs):
+        log.load_state_dict([c["logs"][b] for c in ck.chunks("tracking") + ck.chunks("prepared")])
+    chunk = ck.chunks("prepared")[0]
+    p = ck.prepared
+    times.clear()
+    times.update(p["times"])
+    return _Prepared(logs, int(p["skipped"]), chunk["tri"], chunk["descs"], dict(p["input_times"]),
+                     list(p["skipped_per_stream"]))
+
+
+def _new_logs(inp: _Inputs, opt: LoopOptions) -> List[KeyframeLog]:
+    return [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
+                        opt.keyframe_angle, opt.keyframe_every) for b in range(len(inp.seqs))]
+
+
 def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, float], t_start: float,
             out: Optional[PathLike], extra_summary: Optional[Dict[str, Any]] = None,
-            vocabulary: Optional[Tuple[Any, Dict[str, Any], float]] = None) -> LoopRun:
+            vocabulary: Optional[Tuple[Any, Dict[str, Any], float]] = None, ck=None) -> LoopRun:
     """Stages 5-6 and the outputs: vocabulary (``vocabulary``: an already trained one, its
     summary entry and training seconds), pose graphs, trajectories and ATE, the summary, ``out``
-    (None: nothing)."""
+    (None: nothing). ``ck``: the run's ``LoopCheckpoints`` (or None): the prepared checkpoint
+    after the vocabulary, the pose-graph stage's checkpoints, a resume of either; ``out`` is
+    written into its staging folder."""
     logs, tri, descs = prep.logs, prep.tri, prep.descs
-    if vocabulary is None:
+    if ck is not None and ck.past_tracking:
+        voc, voc_info = _resumed_vocabulary(inp, ck)
+    elif vocabulary is None:
         voc, voc_info = _vocabulary(inp.vocabulary, descs, opt, times)
     else:
         voc, voc_info = vocabulary[0], dict(vocabulary[1])
         times.pop("vocabulary_load", None)
         times["vocabulary"] = vocabulary[2]
-    gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
+    if ck is None:
+        gr = _pose_graphs(inp, logs, tri, descs, voc, opt)
+    else:
+        gr = _checkpointed_graphs(inp, prep, voc, voc_info, opt, times, ck)
     t_opt = sum(g.optimize_seconds for g in gr.graphs)
     times["recognition_verification"] = gr.seconds - t_opt
     times["optimisation"] = t_opt
@@ -446,8 +496,56 @@ def _finish(inp: _Inputs, prep: _Prepared, opt: LoopOptions, times: Dict[str, fl
         from ..loop.report import write_loop_outputs
 
         summary["out"] = str(Path(out))
-        write_loop_outputs(out, run)
+        write_loop_outputs(out, run, stage=None if ck is None else ck.stage)
     return run
+
+
+def save_prepared(ck, prep: _Prepared, times: Dict[str, float], extra: Dict[str, Any], vocabulary=None) -> None:
+    """The prepared checkpoint (``pipelines.loop_checkpoint``): stages 1-4 (and ``vocabulary``, a
+    trained one's ``state_dict``) done; ``extra``: entries kept with the times and counts."""
+    steps = int(ck.writer.frames)
+    ck.prepared = {"times": dict(times), "skipped": prep.skipped, "input_times": dict(prep.input_times),
+                   "skipped_per_stream": list(prep.skipped_per_stream), "steps": steps, **extra}
+    if ck.writer.enabled:
+        marks = ck.log_marks or [None] * len(prep.logs)
+        ck.save(steps, "prepared", {}, {"logs": [log.state_dict(since=m) for log, m in zip(prep.logs, marks)],
+                                        "tri": prep.tri, "descs": prep.descs, "vocabulary": vocabulary})
+
+
+def _resumed_vocabulary(inp: _Inputs, ck):
+    """The vocabulary of a run resumed past stage 5: the trained one from the prepared chunk, or
+    the given one (loaded again: the fingerprint holds its file's contents)."""
+    from ..loop.vocabulary import Vocabulary
+
+    chunk = ck.chunks("prepared")[0]
+    info = dict(ck.prepared["vocabulary_info"])
+    if chunk["vocabulary"] is not None:
+        return Vocabulary.from_state_dict(chunk["vocabulary"]), info
+    return inp.vocabulary, info
+
+
+def _checkpointed_graphs(inp: _Inputs, prep: _Prepared, voc, voc_info, opt: LoopOptions, times: Dict[str, float],
+                         ck) -> _Graphs:
+    """Stage 6 with checkpoints (``pipelines.loop_checkpoint``): first the prepared checkpoint (a
+    fresh run, or one resumed while tracking), then one per ``checkpoint_every`` keyframes; a run
+    resumed in this stage restores it from its checkpoint."""
+    if not ck.past_tracking:
+        save_prepared(ck, prep, times, {"vocabulary_info": dict(voc_info)},
+                      voc.state_dict() if inp.vocabulary is None else None)
+    steps = int(ck.prepared["steps"])
+    stage = _GraphStage(inp, prep.logs, prep.tri, prep.descs, voc, opt, load_graph=ck.phase != "graphs")
+    if ck.phase == "graphs":
+        chunks = ck.chunks("graphs")
+        stage.restore_parts(ck.payload["graph"], [c["keyframes"] for c in chunks])
+
+    def after_step():
+        ck.kill_point("keyframe", stage.done)
+        if ck.due(steps + stage.done):
+            payload, static = stage.checkpoint_parts()
+            ck.save(steps + stage.done, "graphs", {"graph": payload}, {"keyframes": static})
+
+    with progress_bar(opt.progress, stage.gr.keyframes, "loop closure", "kf") as bar:
+        return stage.run(bar, after_step)
 
 
 def _plural(n: int, word: str) -> str:
@@ -500,22 +598,39 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     return _Inputs(cfgs, dev, R_ics, t_ics, seqs, names, trajs, pose_names, gts, gt_trajs, voc)
 
 
-def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
+def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None, ck=None
            ) -> Tuple[List[KeyframeLog], int, Dict[str, Any], List[int]]:
     """Stages 1-2: track every stream and pick its keyframes; returns the logs, the number of
     skipped bad frames, the input pipeline's times (``workers``, ``decode_seconds``,
-    ``input_wait_seconds``) and the skipped frames per stream."""
+    ``input_wait_seconds``) and the skipped frames per stream. ``ck``: the run's
+    ``LoopCheckpoints`` (tracking checkpoints; a resumed run continues from its checkpoint)."""
     from .prefetch import FrameStream
 
     B = len(inp.seqs)
-    logs = [KeyframeLog(inp.names[b], inp.trajs[b], inp.pose_names[b], opt.max_pose_gap, opt.keyframe_distance,
-                        opt.keyframe_angle, opt.keyframe_every) for b in range(B)]
+    logs = _new_logs(inp, opt)
     stream = FrameStream(inp.seqs, size=stream_sizes(inp.cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=inp.device.type == "cuda")
     tracker = make_tracker(inp.cfgs, inp.device, opt.tracker_mode)
+    start = 0
+    before = {"tracking": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}  # the interrupted runs'
+    if ck is not None and ck.phase == "tracking":
+        tracker.load_state_dict(ck.payload["tracker"])
+        chunks = ck.chunks("tracking")
+        for b, log in enumerate(logs):
+            log.load_state_dict([c["logs"][b] for c in chunks])
+        start = ck.resumed.frames
+        before = dict(ck.payload["times"])
+    if ck is not None:
+        ck.log_marks = [log.mark() for log in logs]
+
+    def clocks(t0):
+        return {"tracking": before["tracking"] + _time.perf_counter() - t0,
+                "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+
     with progress_bar(opt.progress, frames_to_read(inp.seqs, opt.max_frames), "tracking", "frame") as bar:
         t0 = _time.perf_counter()
-        for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar):
+        for batch, fr, _ in tracked_batches(tracker, stream, inp.device, bar, start=start):
             alive = batch.alive.numpy().astype(bool)
             pub = fr.published.cpu().numpy().astype(bool) & alive
             valid = fr.valid.cpu().numpy()
@@ -530,7 +645,15 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
                     logs[b].add(float(ts[b]), ids[b][m], xy[b][m], uv[b][m], batch.raw[b])
             if beat is not None:
                 beat()
-    times["tracking"] = _time.perf_counter() - t0
+            if ck is not None:
+                steps = batch.step + 1
+                ck.frame_hook(steps)
+                if ck.due(steps):
+                    chunk = {"logs": [log.state_dict(since=m) for log, m in zip(logs, ck.log_marks)]}
+                    ck.save(steps, "tracking", {"tracker": tracker.state_dict(), "times": clocks(t0)}, chunk)
+                    ck.log_marks = [log.mark() for log in logs]
+    end = clocks(t0)
+    times["tracking"] = end["tracking"]
     for b, log in enumerate(logs):
         if not any(log.covered):
             raise DataError(f"{log.poses_name}: the poses ({span(log.traj.time.numpy())}) do not cover the images "
@@ -539,8 +662,8 @@ def _track(inp: _Inputs, opt: LoopOptions, times: Dict[str, float], beat=None
         if not log.kf_frames:
             raise DataError(f"{log.name}: no keyframe (no published frame with tracked features inside the poses' "
                             f"time span {span(log.traj.time.numpy())})")
-    input_times = {"workers": int(opt.workers), "decode_seconds": round(stream.decode_seconds, 6),
-                   "input_wait_seconds": round(stream.wait_seconds, 6)}
+    input_times = {"workers": int(opt.workers), "decode_seconds": round(end["decode_seconds"], 6),
+                   "input_wait_seconds": round(end["input_wait_seconds"], 6)}
     per_stream = [sum(1 for k in stream.skipped if k[0] == b) for b in range(B)]
     return logs, len(stream.skipped), input_times, per_stream
 
@@ -573,55 +696,182 @@ def _vocabulary(voc, descs: List[List[Dict[str, torch.Tensor]]], opt: LoopOption
     return voc, info
 
 
+class _GraphStage:
+    """Stage 6, resumable: every keyframe into its pose graph, in time order (one stream after the
+    other), one :meth:`step` per keyframe; :meth:`state_dict` / :meth:`load_state_dict` stop it
+    after any step and go on bit for bit (a checkpoint of ``loop``)."""
+
+    STATE_VERSION = 1
+
+    def __init__(self, inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: LoopOptions,
+                 load_graph: bool = True):
+        from ..loop.pose_graph import PoseGraph
+
+        self.inp, self.logs, self.tri, self.descs, self.opt = inp, logs, tri, descs, opt
+        B = len(logs)
+        n_graphs = B if opt.separate_graphs else 1
+        # graph g: stream g's camera and extrinsic (separate graphs), or the shared map's one extrinsic
+        # (stream_extrinsics checked they agree) with stream 0's camera (the graph keeps it for users)
+        self.graphs = [PoseGraph(inp.cfgs[g].camera.to(dtype=_F64), voc, mode=opt.mode, R_ic=inp.R_ics[g],
+                                 t_ic=inp.t_ics[g], pnp_backend=opt.pnp_backend,
+                                 generator=torch.Generator().manual_seed(opt.seed))
+                       for g in range(n_graphs)]
+        loaded = 0
+        if opt.load_graph is not None and load_graph:
+            for g in self.graphs:
+                loaded = g.load(opt.load_graph)
+        self.gr = _Graphs(self.graphs, [], [], {} if opt.keep_images else None,
+                          sum(len(log.kf_frames) for log in logs), loaded, 0, 0, 0.0)
+        self.owner: Dict[Tuple[int, int], int] = {}  # (graph, index) -> stream
+        self.b, self.k = 0, 0  # the next keyframe: stream b's k-th
+        self.idx: List[int] = []  # graph indices of stream b's keyframes so far
+        self.saved = [0] * n_graphs  # keyframes of each graph in earlier checkpoint chunks
+        self.positions: List[int] = []  # of each gr.loops record's result in its graph's loops
+
+    @property
+    def done(self) -> int:
+        """Keyframes added so far (of this run's, not the loaded ones)."""
+        return sum(len(log.kf_frames) for log in self.logs[:self.b]) + self.k
+
+    def step(self) -> bool:
+        """Add the next keyframe (closing its stream when it was the last); False when none is left."""
+        opt, gr = self.opt, self.gr
+        while self.b < len(self.logs) and self.k >= len(self.logs[self.b].kf_frames):
+            self._close_stream()
+        if self.b >= len(self.logs):
+            return False
+        b, k, log = self.b, self.k, self.logs[self.b]
+        g = b if opt.separate_graphs else 0
+        seq_id = 1 if opt.separate_graphs else b + 1
+        pts, Tk, Rk = self.tri[b]
+        kf = make_keyframe(log.times[log.kf_frames[k]], seq_id, Tk[k], Rk[k], pts[k], self.descs[b][k])
+        query = kf.num_points > MIN_POINTS_TO_QUERY
+        gr.not_querying += int(not query)
+        res = self.graphs[g].add_keyframe(kf, detect_loop=query)
+        self.owner[(g, kf.index)] = b
+        self.idx.append(kf.index)
+        if gr.images is not None:
+            gr.images[(g, kf.index)] = log.kf_images[k]
+        if res is not None:
+            old = self.graphs[g].keyframes[res.old_index]
+            gr.loops.append(LoopRecord(g, b, self.owner.get((g, res.old_index), -1), kf.time, old.time, res))
+            self.positions.append(len(self.graphs[g].loops) - 1)
+            gr.accepted += int(res.accepted)
+        self.k += 1
+        if self.k >= len(log.kf_frames):
+            self._close_stream()
+        return True
+
+    def _close_stream(self) -> None:
+        b, log, opt = self.b, self.logs[self.b], self.opt
+        pts = self.tri[b][0]
+        self.gr.streams.append(StreamRun(
+            name=log.name, stream=b, graph=b if opt.separate_graphs else 0, sequence=1 if opt.separate_graphs else b + 1,
+            frames=log.frames, published=len(log.times), uncovered=int(len(log.covered) - sum(log.covered)),
+            keyframe_times=np.array([log.times[f] for f in log.kf_frames]),
+            graph_indices=np.array(self.idx, dtype=np.int64),
+            num_points=np.array([p[0].shape[0] for p in pts], dtype=np.int64)))
+        self.b, self.k, self.idx = b + 1, 0, []
+
+    def run(self, bar=None, after_step=None) -> _Graphs:
+        """Every keyframe left; ``after_step()`` (or None) is called after each (a checkpoint's
+        chance). Returns the stage's results (``seconds``: this run's and the earlier runs')."""
+        t0 = _time.perf_counter() - self.gr.seconds
+        if bar is not None and self.done:
+            bar.update(self.done)
+        while self.step():
+            if bar is not None:
+                bar.set_postfix(loops=self.gr.accepted, refresh=False)
+                bar.update(1)
+            self.gr.seconds = _time.perf_counter() - t0
+            if after_step is not None:
+                after_step()
+        self.gr.seconds = _time.perf_counter() - t0
+        return self.gr
+
+    def state_dict(self, append: bool = False) -> Dict[str, Any]:
+        """The stage's state (``loop.state``): each graph's ``PoseGraph.state_dict`` (with
+        ``append``: its keyframes' points and descriptors only since the previous call's, a
+        chunk to keep with the earlier ones), where the stage stands, the candidates' owners and
+        the counts."""
+        since = self.saved if append else [0] * len(self.graphs)
+        graphs = [g.state_dict(since=s) for g, s in zip(self.graphs, since)]
+        self.saved = [len(g.keyframes) for g in self.graphs]
+        gr = self.gr
+        # a candidate is its graph's LoopResult: found again by its position there
+        records = [[r.graph, r.stream, r.old_stream, pos] for r, pos in zip(gr.loops, self.positions)]
+        return {"kind": "LoopGraphStage", "version": self.STATE_VERSION, "graphs": graphs, "b": self.b,
+                "k": self.k, "idx": list(self.idx), "owner": [[g, i, b] for (g, i), b in self.owner.items()],
+                "records": records, "streams_closed": len(gr.streams), "loaded": gr.loaded,
+                "not_querying": gr.not_querying, "accepted": gr.accepted, "seconds": gr.seconds}
+
+    def checkpoint_parts(self):
+        """:meth:`state_dict` (``append``) split for a checkpoint: ``(state, chunk)``, the chunk
+        holding the graphs' new keyframes' points and descriptors (written once, append-only),
+        the state everything else (rewritten each time)."""
+        from ..loop.keyframe import KEYFRAME_STATIC_KEYS
+
+        st = self.state_dict(append=True)
+        static = []
+        for g in st["graphs"]:
+            kst = g["keyframes"]
+            static.append({k: kst[k] for k in KEYFRAME_STATIC_KEYS})
+            g["keyframes"] = {k: v for k, v in kst.items() if k not in KEYFRAME_STATIC_KEYS}
+        return st, static
+
+    def restore_parts(self, state, chunks) -> None:
+        """Restore :meth:`checkpoint_parts`' last ``state`` and every ``chunk`` so far, in order."""
+        states = []
+        for static in chunks:  # one stage state per chunk: its keyframes, the rest of the last state
+            graphs = [{**g, "keyframes": {**g["keyframes"], **static[n]}} for n, g in enumerate(state["graphs"])]
+            states.append({**state, "graphs": graphs})
+        self.load_state_dict(states)
+
+    def load_state_dict(self, states) -> None:
+        """Restore :meth:`state_dict` (or its chunks in order: the last gives all but the
+        graphs' keyframe chunks). ``StateError`` for a state of another version or graphs."""
+        from ..loop.state import StateError, check_state
+
+        chunks = list(states) if isinstance(states, (list, tuple)) else [states]
+        for c in chunks:
+            check_state(c, "LoopGraphStage", self.STATE_VERSION, ("graphs", "b", "k", "records"))
+            if len(c["graphs"]) != len(self.graphs):
+                raise StateError(f"LoopGraphStage state: {len(c['graphs'])} pose graphs, this run has "
+                                 f"{len(self.graphs)}")
+        st = chunks[-1]
+        for n, g in enumerate(self.graphs):
+            g.load_state_dict([c["graphs"][n] for c in chunks])
+        self.saved = [len(g.keyframes) for g in self.graphs]
+        gr = self.gr
+        gr.loaded, gr.not_querying, gr.accepted, gr.seconds = (int(st["loaded"]), int(st["not_querying"]),
+                                                                int(st["accepted"]), float(st["seconds"]))
+        self.owner = {(int(g), int(i)): int(b) for g, i, b in st["owner"]}
+        gr.loops, self.positions = [], [int(r[3]) for r in st["records"]]
+        for g, b, ob, pos in st["records"]:
+            res = self.graphs[g].loops[pos]
+            cur, old = self.graphs[g].keyframes[res.index], self.graphs[g].keyframes[res.old_index]
+            gr.loops.append(LoopRecord(int(g), int(b), int(ob), cur.time, old.time, res))
+        # the closed streams and the current one's keyframes so far, from the restored owners
+        self.b, self.k, self.idx = 0, 0, []
+        gr.streams = []
+        idx_of: Dict[int, List[Tuple[int, int]]] = {}  # stream -> its (graph, index) in adding order
+        for (g, i), b in sorted(self.owner.items()):
+            idx_of.setdefault(b, []).append((g, i))
+        for b in range(int(st["streams_closed"])):
+            self.idx = [i for _, i in idx_of.get(b, [])]
+            self._close_stream()
+        self.k, self.idx = int(st["k"]), [int(i) for i in st["idx"]]
+        if gr.images is not None:
+            for b, keys in idx_of.items():
+                for pos, key in enumerate(keys):
+                    gr.images[key] = self.logs[b].kf_images[pos]
+
+
 def _pose_graphs(inp: _Inputs, logs: List[KeyframeLog], tri, descs, voc, opt: LoopOptions) -> _Graphs:
     """Stage 6: every keyframe into its pose graph, in time order (one stream after the other)."""
-    from ..loop.pose_graph import PoseGraph
-
-    B = len(logs)
-    n_graphs = B if opt.separate_graphs else 1
-    # graph g: stream g's camera and extrinsic (separate graphs), or the shared map's one extrinsic
-    # (stream_extrinsics checked they agree) with stream 0's camera (the graph keeps it for users)
-    graphs = [PoseGraph(inp.cfgs[g].camera.to(dtype=_F64), voc, mode=opt.mode, R_ic=inp.R_ics[g], t_ic=inp.t_ics[g],
-                        pnp_backend=opt.pnp_backend, generator=torch.Generator().manual_seed(opt.seed))
-              for g in range(n_graphs)]
-    loaded = 0
-    if opt.load_graph is not None:
-        for g in graphs:
-            loaded = g.load(opt.load_graph)
-    gr = _Graphs(graphs, [], [], {} if opt.keep_images else None, sum(len(log.kf_frames) for log in logs),
-                 loaded, 0, 0, 0.0)
-    owner: Dict[Tuple[int, int], int] = {}  # (graph, index) -> stream
-    with progress_bar(opt.progress, gr.keyframes, "loop closure", "kf") as bar:
-        t0 = _time.perf_counter()
-        for b, log in enumerate(logs):
-            g = b if opt.separate_graphs else 0
-            seq_id = 1 if opt.separate_graphs else b + 1
-            pts, Tk, Rk = tri[b]
-            idx = []
-            for k, f in enumerate(log.kf_frames):  # keyframes: one pose-graph step each
-                kf = make_keyframe(log.times[f], seq_id, Tk[k], Rk[k], pts[k], descs[b][k])
-                query = kf.num_points > MIN_POINTS_TO_QUERY
-                gr.not_querying += int(not query)
-                res = graphs[g].add_keyframe(kf, detect_loop=query)
-                owner[(g, kf.index)] = b
-                idx.append(kf.index)
-                if gr.images is not None:
-                    gr.images[(g, kf.index)] = log.kf_images[k]
-                if res is not None:
-                    old = graphs[g].keyframes[res.old_index]
-                    gr.loops.append(LoopRecord(g, b, owner.get((g, res.old_index), -1), kf.time, old.time, res))
-                    gr.accepted += int(res.accepted)
-                if bar is not None:
-                    bar.set_postfix(loops=gr.accepted, refresh=False)
-                    bar.update(1)
-            gr.streams.append(StreamRun(
-                name=log.name, stream=b, graph=g, sequence=seq_id, frames=log.frames, published=len(log.times),
-                uncovered=int(len(log.covered) - sum(log.covered)),
-                keyframe_times=np.array([log.times[f] for f in log.kf_frames]),
-                graph_indices=np.array(idx, dtype=np.int64),
-                num_points=np.array([p[0].shape[0] for p in pts], dtype=np.int64)))
-    gr.seconds = _time.perf_counter() - t0
-    return gr
+    stage = _GraphStage(inp, logs, tri, descs, voc, opt)
+    with progress_bar(opt.progress, stage.gr.keyframes, "loop closure", "kf") as bar:
+        return stage.run(bar)
 
 
 def _trajectories_and_ate(inp: _Inputs, gr: _Graphs, opt: LoopOptions) -> Dict[str, float]:

@@ -132,6 +132,67 @@ class KeyframeLog:
             self.kf_images.append(np.array(image, dtype=np.uint8, copy=True))
             self._last = (pt, pq)
 
+    # -- state (checkpoints) --------------------------------------------------------------------
+    STATE_VERSION = 1
+
+    def _settings(self) -> Dict[str, Any]:
+        return {"name": self.name, "max_gap": float(self.max_gap), "keyframe_distance": float(self.kf_distance),
+                "keyframe_cos": float(self.kf_cos), "keyframe_every": self.kf_every}
+
+    def mark(self) -> Dict[str, int]:
+        """Where the log stands (``state_dict(since=...)`` gives what was appended after it)."""
+        return {"times": len(self.times), "obs": len(self.obs), "keyframes": len(self.kf_frames)}
+
+    def state_dict(self, since: Optional[Dict[str, int]] = None) -> Dict[str, Any]:
+        """The log as CPU tensors: its counters and last keyframe pose, and what was appended to
+        its lists after the :meth:`mark` ``since`` (None: from the start), so that a checkpoint
+        writes each published frame once (an append-only chunk; :meth:`load_state_dict` takes the
+        chunks in order). Published frames: ``times (F,)`` float64, ``covered (F,)`` bool;
+        observations: ``obs_frame``/``obs_n (O,)`` int64 (frame, feature count) and the features
+        concatenated (``obs_ids``, ``obs_xy``, ``obs_uv``); keyframes: ``kf_frames (K,)`` int64
+        and ``kf_images`` (K ``(H, W)`` uint8 tensors)."""
+        from ..loop.state import pack_ragged
+
+        m = since or {"times": 0, "obs": 0, "keyframes": 0}
+        obs = self.obs[m["obs"]:]
+        ids, n = pack_ragged([torch.from_numpy(o[1]) for o in obs], torch.zeros(0, dtype=torch.int64))
+        xy, _ = pack_ragged([torch.from_numpy(o[2]) for o in obs], torch.zeros(0, 2, dtype=_F64))
+        uv, _ = pack_ragged([torch.from_numpy(o[3]) for o in obs], torch.zeros(0, 2, dtype=_F64))
+        return {"kind": "KeyframeLog", "version": self.STATE_VERSION, "settings": self._settings(),
+                "start": dict(m), "frames": int(self.frames), "candidates": int(self._candidates),
+                "last": None if self._last is None else [torch.from_numpy(np.array(v)) for v in self._last],
+                "times": torch.tensor(self.times[m["times"]:], dtype=_F64),
+                "covered": torch.tensor(self.covered[m["times"]:], dtype=torch.bool),
+                "obs_frame": torch.tensor([o[0] for o in obs], dtype=torch.int64), "obs_n": n,
+                "obs_ids": ids, "obs_xy": xy, "obs_uv": uv,
+                "kf_frames": torch.tensor(self.kf_frames[m["keyframes"]:], dtype=torch.int64),
+                "kf_images": [torch.from_numpy(im) for im in self.kf_images[m["keyframes"]:]]}
+
+    def load_state_dict(self, state) -> None:
+        """Restore one :meth:`state_dict` or a list of chunks (in the order they were written;
+        each must start where the log stands). Raises ``StateError`` for another version, other
+        keyframe settings or a chunk that does not follow."""
+        from ..loop.state import StateError, check_same, check_state, split_ragged
+
+        for st in (state if isinstance(state, (list, tuple)) else [state]):
+            check_state(st, "KeyframeLog", self.STATE_VERSION, ("settings", "start", "times", "obs_n", "kf_frames"))
+            here = self._settings()
+            for key, v in st["settings"].items():
+                check_same("KeyframeLog", key, v, here.get(key))
+            if st["start"] != self.mark():
+                raise StateError(f"KeyframeLog state of {self.name}: a chunk starting at {st['start']} does not "
+                                 f"follow the log, which stands at {self.mark()} (a chunk is missing)")
+            n = st["obs_n"]
+            parts = [split_ragged(st[k], n) for k in ("obs_ids", "obs_xy", "obs_uv")]
+            self.obs += [(int(f), i.numpy(), x.numpy(), u.numpy())
+                         for f, i, x, u in zip(st["obs_frame"].tolist(), *parts)]
+            self.times += st["times"].tolist()
+            self.covered += [bool(c) for c in st["covered"].tolist()]
+            self.kf_frames += [int(f) for f in st["kf_frames"].tolist()]
+            self.kf_images += [im.numpy().copy() for im in st["kf_images"]]
+            self.frames, self._candidates = int(st["frames"]), int(st["candidates"])
+            self._last = None if st["last"] is None else (st["last"][0].numpy().copy(), st["last"][1].numpy().copy())
+
 
 # ----------------------------------------------------------------------------------------------
 # triangulation

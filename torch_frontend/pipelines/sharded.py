@@ -89,10 +89,14 @@ def _source_name(src) -> str:
     return source_name(src)
 
 
-def prepare_sharded_out(out, legacy: Sequence[str]) -> Path:
+def prepare_sharded_out(out, legacy: Sequence[str], resume: bool = False, inputs: Optional[int] = None) -> Path:
     """Check ``out`` for a sharded run and clear the previous job's outputs (module docstring);
     ``legacy``: what a ``stream<b>/`` folder may hold (the writer's ``LEGACY_OUTPUTS``). Returns
-    ``out``. Raises ``OutputFolderError`` (nothing touched) for anything else in ``out``."""
+    ``out``. Raises ``OutputFolderError`` (nothing touched) for anything else in ``out``.
+
+    ``resume`` (``--resume``, or a restart under torch elastic: ``pipelines.elastic``): the
+    ``stream<b>/`` folders of the ``inputs`` inputs stay (the interrupted job's finished ones; the
+    ranks replace the others as they finish them); the merged files go all the same."""
     from .._atomic import MARKER, OutputFolderError, check_replaceable, clean_stale
 
     out = Path(out)
@@ -124,6 +128,8 @@ def prepare_sharded_out(out, legacy: Sequence[str]) -> Path:
     for name in (SUMMARY, INDEX, MARKER):  # the summary first: it is what says "complete"
         (out / name).unlink(missing_ok=True)
     for p in streams:
+        if resume and inputs is not None and int(p.name[len("stream"):]) < inputs:
+            continue
         shutil.rmtree(p)
     for name in sorted(set(temporaries)):
         clean_stale(out / name)  # a killed job's; a live process's stay
@@ -145,9 +151,53 @@ def _backend() -> str:
     return str(dist.get_backend()) if dist.is_initialized() else "none (one process)"
 
 
-def _prepare(job, out: Path, legacy: Sequence[str]) -> None:
+def _prepare(job, out: Path, legacy: Sequence[str], resume: bool = False, inputs: Optional[int] = None) -> None:
     """Rank 0 prepares ``out`` while the others wait (a refusal fails the job on every rank)."""
-    job.run(lambda: prepare_sharded_out(out, legacy) if job.rank == 0 else None, exit_code_of, phase="prepare")
+    job.run(lambda: prepare_sharded_out(out, legacy, resume, inputs) if job.rank == 0 else None, exit_code_of,
+            phase="prepare")
+
+
+def _rank_stage(out: Path, job, opt, world_inputs: int, holder: List[Any]):
+    """The factory ``track_streams`` / the loop's ranks call with their fingerprint: this rank's
+    ``elastic.RankStage`` (the job's fingerprint: the rank's, the world size and the rank), kept in
+    ``holder`` for the end of the job."""
+    from .elastic import RankStage, resuming
+
+    def make(fp: Dict[str, str]):
+        fp = {**fp, "world size": str(job.world_size), "rank": str(job.rank), "job inputs": str(world_inputs)}
+        holder.append(RankStage(out, job.rank, fp, opt.checkpoint_every, resuming(opt.resume)))
+        return holder[-1]
+    return make
+
+
+def _work_with_stage(work, holder: List[Any]):
+    """``work`` whose rank stage (made inside it) is kept or removed as ``RankStage.stop`` says when
+    it raises."""
+    def run():
+        try:
+            return work()
+        except BaseException as exc:
+            for st in holder:
+                st.stop(exc)
+            raise
+    return run
+
+
+def _finish_job(job, holder: List[Any], merge) -> Any:
+    """Rank 0's ``merge()`` (the merged files) as the job's last phase, then every rank removes
+    its staging folder (the job is complete). Returns what ``merge`` returned on rank 0."""
+    box: Dict[str, Any] = {}
+
+    def phase():
+        if job.rank == 0:
+            box["result"] = merge()
+    job.run(phase, exit_code_of, phase="merge")
+    # meet once more: rank 0 may host the store (no launcher agent), and a rank still reading the
+    # merge phase's outcomes must not find it gone
+    job.barrier()
+    for st in holder:
+        st.close()
+    return box.get("result")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -183,27 +233,30 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
 
     env = dist_env()
     mine = list(shard_indices(len(sources), env.rank, env.world_size))
+    from .elastic import resuming
+
     with Job("track", _inputs_text([_source_name(sources[i]) for i in mine]),
              DEFAULT_TIMEOUT if timeout is None else timeout, device=dev) as job:
-        _prepare(job, out, LEGACY_OUTPUTS)
+        _prepare(job, out, LEGACY_OUTPUTS, resuming(opt.resume), len(sources))
         if env.rank != 0:
             opt = dataclasses.replace(opt, progress=False)
         extra = {"distributed": {"rank": env.rank, "world_size": env.world_size, "batch": mine}}
+        holder: List[Any] = []
 
         def work():
             if not mine:
                 return None
             return track_streams([cfgs[i] for i in mine], [sources[i] for i in mine], [out / f"stream{i}" for i in mine],
-                                 opt,
-                                 extra=extra, beat=job.beat)
+                                 opt, extra=extra, beat=job.beat, stage=_rank_stage(out, job, opt, len(sources), holder))
 
-        res = job.run(work, exit_code_of)
+        res = job.run(_work_with_stage(work, holder), exit_code_of)
         gathered = job.gather({"rank": env.rank, "streams": mine, "result": res, "host": os.uname().nodename})
-        if job.rank != 0:
-            return None
-        summary, index = _merge_track(gathered, sources, cfgs, opt, out, job, time.perf_counter() - t_start)
-        _write_merged(out, "track-sharded", summary, index)
-        return summary
+
+        def merge():
+            summary, index = _merge_track(gathered, sources, cfgs, opt, out, job, time.perf_counter() - t_start)
+            _write_merged(out, "track-sharded", summary, index)
+            return summary
+        return _finish_job(job, holder, merge)
 
 
 def _merge_track(gathered, sources, cfgs, opt, out: Path, job, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:
@@ -335,8 +388,17 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
     (merged) summary on rank 0, None on the others; ``out=None`` writes nothing."""
     from ..distributed import Job, dist_env, shard_indices
     from ..distributed.env import DEFAULT_TIMEOUT
+    from .elastic import resuming
     from .inputs import resolve_configs
-    from .loop import LoopOptions, _check_arguments, _open_inputs, _prepare_streams, stream_extrinsics
+    from .loop import (
+        LoopOptions,
+        _check_arguments,
+        _open_inputs,
+        _prepare_streams,
+        save_prepared,
+        stream_extrinsics,
+    )
+    from .loop_checkpoint import LoopCheckpoints, loop_fingerprint
 
     t_start = time.perf_counter()
     opt = LoopOptions() if options is None else options
@@ -365,7 +427,7 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
             if out is not None and opt.separate_graphs:
                 from ..loop.report import LEGACY_OUTPUTS
 
-                prepare_sharded_out(out, LEGACY_OUTPUTS)
+                prepare_sharded_out(out, LEGACY_OUTPUTS, resuming(opt.resume), len(sources))
             voc = None
             if opt.vocabulary is not None and not opt.separate_graphs:  # the graph's rank loads it
                 from ..loop.vocabulary import Vocabulary
@@ -375,20 +437,32 @@ def run_loop_sharded(config, sources: Sequence[Any], poses: Sequence[Any], out=N
             return voc, time.perf_counter() - t0
 
         prepared = job.run(prepare, exit_code_of, phase="prepare")
+        holder: List[Any] = []
 
         def work():
             if not mine:
                 return None
             times: Dict[str, float] = {}
-            inp = _open_inputs([cfgs[i] for i in mine], [sources[i] for i in mine], [poses[i] for i in mine],
-                               [gts[i] for i in mine],
-                               ropt, times, load_vocabulary=opt.separate_graphs)
-            return inp, _prepare_streams(inp, ropt, times, beat=job.beat), times
+            my_poses, my_gts = [poses[i] for i in mine], [gts[i] for i in mine]
+            inp = _open_inputs([cfgs[i] for i in mine], [sources[i] for i in mine], my_poses, my_gts, ropt, times,
+                               load_vocabulary=opt.separate_graphs)
+            ck = None
+            if out is not None:  # the rank's checkpoints in its staging folder beside out
+                fp = loop_fingerprint(inp.cfgs, [sources[i] for i in mine], inp.seqs, my_poses, my_gts, ropt, dev)
+                ck = LoopCheckpoints.of_rank(_rank_stage(Path(out), job, opt, len(sources), holder)(fp))
+            prep = _prepare_streams(inp, ropt, times, beat=job.beat, ck=ck)
+            if ck is not None and not ck.past_tracking:
+                save_prepared(ck, prep, times, {})
+            return inp, prep, times, ck
 
-        res = job.run(work, exit_code_of)
+        res = job.run(_work_with_stage(work, holder), exit_code_of)
         if opt.separate_graphs:
-            return _separate_graphs(job, res, mine, opt, ropt, out, t_start)
-        return _shared_map(job, res, mine, prepared, gts, opt, out, t_start)
+            summary = _separate_graphs(job, res, mine, opt, ropt, out, t_start, holder)
+        else:
+            summary = _shared_map(job, res, mine, prepared, gts, opt, out, t_start)
+        for st in holder:  # the job is complete
+            st.close()
+        return summary
 
 
 def _shareable(inp, prep, keep_images: bool):
@@ -408,41 +482,45 @@ def _dist_entry(job, ranks: List[Dict[str, Any]]) -> Dict[str, Any]:
 
 
 def _shared_map(job, res, mine, prepared, gts, opt, out, t_start) -> Optional[Dict[str, Any]]:
-    """Rank 0 builds the one graph from every rank's keyframes and writes ``run_loop``'s outputs."""
+    """Rank 0 builds the one graph from every rank's keyframes and writes ``run_loop``'s outputs
+    (the job's last phase: the ranks keep their checkpoints until it is done)."""
     from .loop import _finish, _Inputs, _Prepared
 
     payload = None
     if res is not None:
-        inp, prep, times = res
+        inp, prep, times, _ = res
         payload = (*_shareable(inp, prep, opt.keep_images), times)
     gathered = job.gather({"rank": job.rank, "streams": mine, "host": os.uname().nodename, "part": payload})
-    if job.rank != 0:
-        return None
-    parts = [g["part"] for g in gathered if g["part"] is not None]
-    inp_all = _Inputs([c for p in parts for c in p[0].cfgs], resolve_device(opt.device),
-                      [r for p in parts for r in p[0].R_ics], [t for p in parts for t in p[0].t_ics], [],
-                      [n for p in parts for n in p[0].names],
-                      [t for p in parts for t in p[0].trajs], [n for p in parts for n in p[0].pose_names], list(gts),
-                      [t for p in parts for t in p[0].gt_trajs], prepared[0])
-    preps = [p[1] for p in parts]
-    prep_all = _Prepared([x for p in preps for x in p.logs], sum(p.skipped for p in preps),
-                         [x for p in preps for x in p.tri], [x for p in preps for x in p.descs],
-                         {"workers": int(opt.workers),
-                          "decode_seconds": round(sum(p.input_times["decode_seconds"] for p in preps), 6),
-                          "input_wait_seconds": round(sum(p.input_times["input_wait_seconds"] for p in preps), 6)},
-                         [x for p in preps for x in p.skipped_per_stream])
-    # the stages that ran on every rank took as long as the slowest rank
-    times: Dict[str, float] = {"vocabulary_load": prepared[1]}
-    for key in ("tracking", "triangulation", "description"):
-        times[key] = max(p[2].get(key, 0.0) for p in parts)
-    ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
-              "times": {k: round(v, 6) for k, v in (g["part"][2] if g["part"] else {}).items()}} for g in gathered]
-    run = _finish(inp_all, prep_all, opt, times, t_start, out, {"distributed": _dist_entry(job, ranks)})
-    return run.summary
+
+    def merge():  # the ranks wait (their checkpoints kept) until the graph and outputs are written
+        parts = [g["part"] for g in gathered if g["part"] is not None]
+        inp_all = _Inputs([c for p in parts for c in p[0].cfgs], resolve_device(opt.device),
+                          [r for p in parts for r in p[0].R_ics], [t for p in parts for t in p[0].t_ics], [],
+                          [n for p in parts for n in p[0].names],
+                          [t for p in parts for t in p[0].trajs], [n for p in parts for n in p[0].pose_names], list(gts),
+                          [t for p in parts for t in p[0].gt_trajs], prepared[0])
+        preps = [p[1] for p in parts]
+        prep_all = _Prepared([x for p in preps for x in p.logs], sum(p.skipped for p in preps),
+                             [x for p in preps for x in p.tri], [x for p in preps for x in p.descs],
+                             {"workers": int(opt.workers),
+                              "decode_seconds": round(sum(p.input_times["decode_seconds"] for p in preps), 6),
+                              "input_wait_seconds": round(sum(p.input_times["input_wait_seconds"] for p in preps), 6)},
+                             [x for p in preps for x in p.skipped_per_stream])
+        # the stages that ran on every rank took as long as the slowest rank
+        times: Dict[str, float] = {"vocabulary_load": prepared[1]}
+        for key in ("tracking", "triangulation", "description"):
+            times[key] = max(p[2].get(key, 0.0) for p in parts)
+        ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
+                  "times": {k: round(v, 6) for k, v in (g["part"][2] if g["part"] else {}).items()}} for g in gathered]
+        run = _finish(inp_all, prep_all, opt, times, t_start, out, {"distributed": _dist_entry(job, ranks)})
+        return run.summary
+    return _finish_job(job, [], merge)
 
 
-def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[str, Any]]:
-    """One graph per input on its rank (``out/stream<b>/``); rank 0 merges the summaries."""
+def _separate_graphs(job, res, mine, opt, ropt, out, t_start, holder=()) -> Optional[Dict[str, Any]]:
+    """One graph per input on its rank (``out/stream<b>/``); rank 0 merges the summaries. With
+    checkpoints (``res``'s ``LoopCheckpoints``), one as each input is written: a resumed rank
+    takes the finished inputs' entries from it and writes only the others."""
     from .loop import _finish, _Inputs, _Prepared, _vocabulary
     from .loop_stages import keyframe_ate
 
@@ -462,9 +540,13 @@ def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[s
     def graphs():
         if res is None:
             return []
-        inp, prep, times = res
+        inp, prep, times, ck = res
+        finished = dict(ck.payload.get("finished") or {}) if ck is not None else {}
         done = []
         for j, g in enumerate(mine):
+            if g in finished:  # written before the checkpoint this rank continues from
+                done.append(finished[g])
+                continue
             inp_b = _Inputs([inp.cfgs[j]], inp.device, [inp.R_ics[j]], [inp.t_ics[j]], [inp.seqs[j]], [inp.names[j]],
                             [inp.trajs[j]],
                             [inp.pose_names[j]], [inp.gts[j]], [inp.gt_trajs[j]], inp.vocabulary)
@@ -480,22 +562,27 @@ def _separate_graphs(job, res, mine, opt, ropt, out, t_start) -> Optional[Dict[s
                 _, _, sa, _ = keyframe_ate(s.corrected, s.ground_truth, opt.max_pose_gap)
                 raw = (sb, sa, n)
             done.append({"stream": g, "summary": run.summary, "ate_sums": raw})
+            if ck is not None and ck.writer.enabled:  # finished: a resumed rank does not redo it
+                finished[g] = done[-1]
+                ck.save(int(ck.writer.frames) + 1, "streams", {"finished": dict(finished)}, {})
+                ck.kill_point("written", len(finished))  # the test hook: after the input's checkpoint
             job.beat()
         return done
 
-    done = job.run(graphs, exit_code_of, phase="graphs")
+    done = job.run(_work_with_stage(graphs, list(holder)), exit_code_of, phase="graphs")
     gathered = job.gather({"rank": job.rank, "streams": mine, "host": os.uname().nodename, "done": done,
                            "times": res[2] if res else {}, "input": res[1].input_times if res else {}})
-    if job.rank != 0:
-        return None
-    per = [d for g in gathered for d in g["done"]]
-    ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
-              "times": {k: round(v, 6) for k, v in g["times"].items()}} for g in gathered]
-    inputs = [g["input"] for g in gathered if g["input"]]
-    summary, index = _merge_loop(per, opt, out, job, ranks, inputs, time.perf_counter() - t_start)
-    if out is not None:
-        _write_merged(Path(out), "loop-sharded", summary, index)
-    return summary
+
+    def merge():
+        per = [d for g in gathered for d in g["done"]]
+        ranks = [{"rank": g["rank"], "host": g["host"], "streams": g["streams"],
+                  "times": {k: round(v, 6) for k, v in g["times"].items()}} for g in gathered]
+        inputs = [g["input"] for g in gathered if g["input"]]
+        summary, index = _merge_loop(per, opt, out, job, ranks, inputs, time.perf_counter() - t_start)
+        if out is not None:
+            _write_merged(Path(out), "loop-sharded", summary, index)
+        return summary
+    return _finish_job(job, [], merge)
 
 
 def _merge_loop(per, opt, out, job, ranks, inputs, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:

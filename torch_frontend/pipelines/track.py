@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, Iterator, List, Sequence, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 from .common import InputOptions, OptionError, progress_bar, resolve_device
 from .inputs import (
@@ -56,6 +56,12 @@ class TrackOptions(InputOptions):
         bag_format: ``"ros1"`` / ``"ros2"``, overriding the name's form.
         bag_images: add ``/feature_tracker/feature_img``.
         bag_imu: copy each input's IMU into its bag (a bag's ``imu_topic``, a EuRoC ``imu0/data.csv``).
+        checkpoint_every: write a checkpoint (``pipelines.checkpoint``, inside the run's staging
+            folder) every this many frames (steps); None: every 500 frames or 60 s, whichever
+            first; 0: none.
+        resume: continue the interrupted run of the same ``out`` from its last checkpoint
+            (``ResumeError`` when it was another run: inputs, config or options); no checkpoint
+            to continue from: start from the first frame (with a ``DataWarning`` saying so).
     """
 
     mode: str = "mono"
@@ -64,10 +70,16 @@ class TrackOptions(InputOptions):
     bag_format: str | None = None
     bag_images: bool = False
     bag_imu: bool = True
+    checkpoint_every: Optional[int] = None
+    resume: bool = False
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
         super().check()
+        if self.checkpoint_every is not None and (not isinstance(self.checkpoint_every, int)
+                                                  or self.checkpoint_every < 0):
+            raise OptionError("checkpoint_every", f"checkpoint_every: expected an integer >= 0 (frames; 0: no "
+                                                  f"checkpoints), got {self.checkpoint_every!r}")
         if self.mode not in TRACKER_MODES:
             raise OptionError("mode", f"mode: expected mono or fusion, got {self.mode!r}")
         if self.bag_format not in (None, "ros1", "ros2"):
@@ -83,6 +95,13 @@ class TrackOptions(InputOptions):
     def recorder_options(self) -> Dict[str, Any]:
         """The bag arguments of ``outputs.RunRecorder``."""
         return {"bag": self.bag, "bag_format": self.bag_format, "bag_images": self.bag_images}
+
+    def output_options(self, device) -> Dict[str, Any]:
+        """The options that change a run's outputs (a checkpoint's fingerprint; not ``workers``,
+        ``progress`` nor the checkpoint interval), with the device's type."""
+        keep = ("mode", "max_frames", "camera", "fps", "topic", "skip_bad_frames", "write_tracks", "bag",
+                "bag_format", "bag_images", "bag_imu")
+        return {**{k: getattr(self, k) for k in keep}, "device": device.type}
 
 
 def copy_imu(rec, cfg, sources, seqs, opt: TrackOptions, streams=None) -> None:
@@ -125,14 +144,19 @@ def demo_flight_inputs(frames: int = DEMO_FLIGHT["frames"], size: Tuple[int, int
     return cfg, [ArraySequence(imgs, np.arange(len(imgs)) / float(rate), name="flight")]
 
 
-def tracked_batches(tracker, stream, device, bar=None) -> Iterator[Tuple[Any, Any, float]]:
+def tracked_batches(tracker, stream, device, bar=None, start: int = 0) -> Iterator[Tuple[Any, Any, float]]:
     """Run ``tracker`` over ``stream`` (an ``io.MultiStream``): yields ``(batch, frame, seconds)``
     per step, ``seconds`` being the tracker call alone (synchronised on CUDA); ``bar`` (tqdm or
-    None) advances by the alive streams after the caller has used the step."""
+    None) advances by the alive streams after the caller has used the step. ``start``: the steps
+    before it are read but not tracked (a resumed run: the tracker continues from a checkpoint)."""
     import torch
 
     cuda = device.type == "cuda"
     for batch in stream:
+        if batch.step < start:
+            if bar is not None:
+                bar.update(int(batch.alive.sum()))
+            continue
         t1 = time.perf_counter()
         # non_blocking: from FrameStream's pinned staging buffers the copy is asynchronous (the
         # tracker's kernels are queued behind it on the same stream)
@@ -167,6 +191,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
         ``KeyboardInterrupt`` passes through after the temporaries are removed.
     """
     from ..outputs import RunRecorder
+    from . import checkpoint as ckpt
 
     opt = TrackOptions() if options is None else options
     sources = list(sources)
@@ -179,24 +204,58 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     stream = FrameStream(seqs, size=stream_sizes(cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
     tracker = make_tracker(cfgs, dev, opt.mode)
+    fp = ckpt.fingerprint(cfgs, [ckpt.input_fingerprint(src, s) for src, s in zip(sources, seqs)],
+                          opt.output_options(dev))
+    resumed = ckpt.resume_point(out, fp) if opt.resume else None
+    if opt.resume and resumed is None:
+        import warnings
+
+        from ..errors import DataWarning
+
+        warnings.warn(f"--resume: no checkpoint of an interrupted run of {out} found: starting from the first frame",
+                      DataWarning, stacklevel=2)
     steps = 0
-    tracker_seconds = 0.0
-    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options()) as rec:
+    # the times of the interrupted run(s) before the checkpoint, added to this run's
+    before = {"seconds": 0.0, "tracker_seconds": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}
+    with RunRecorder(out, stream_names(seqs), write_tracks=opt.write_tracks, **opt.recorder_options(),
+                     adopt=None if resumed is None else resumed.stage,
+                     journal=opt.checkpoint_every != 0) as rec:
+        if resumed is not None:
+            p = resumed.payload
+            tracker.load_state_dict(p["tracker"])
+            rec.restore(p["recorder"], resumed.chunks)
+            steps = resumed.frames
+            before = dict(p["times"])
+            rec.keep_on_interrupt = True
+        checkpoints = ckpt.Checkpointer(rec.stage_path, fp, opt.checkpoint_every, resumed)
+        tracker_seconds = before["tracker_seconds"]
         t0 = time.perf_counter()
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
-            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
+            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar, start=steps):
                 tracker_seconds += step_seconds
                 rec.add(batch, frame)
                 steps += 1
+                ckpt.frame_hook(steps)
+                if checkpoints.due(steps):
+                    times = {"seconds": before["seconds"] + time.perf_counter() - t0,
+                             "tracker_seconds": tracker_seconds,
+                             "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                             "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+                    checkpoints.save(steps, {"tracker": tracker.state_dict(), "recorder": rec.counters(),
+                                             "times": times}, rec.take_chunk())
+                    rec.keep_on_interrupt = True
         if dev.type == "cuda":
             import torch
 
             torch.cuda.synchronize(dev)
-        seconds = time.perf_counter() - t0
+        seconds = before["seconds"] + time.perf_counter() - t0
+        times = _input_times(stream, opt.workers)
+        times["decode_seconds"] = round(before["decode_seconds"] + stream.decode_seconds, 6)
+        times["input_wait_seconds"] = round(before["input_wait_seconds"] + stream.wait_seconds, 6)
         extra = {
             "steps": steps,
             "tracker_seconds": round(tracker_seconds, 6),
-            **_input_times(stream, opt.workers),
+            **times,
             "config": config_label(cfgs),
             "mode": opt.mode,
             "device": str(dev),
@@ -258,7 +317,7 @@ def _on_cpu(frame):
 
 
 def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], options: TrackOptions | None = None,
-                  *, extra: Dict[str, Any] | None = None, beat=None) -> Dict[str, Any]:
+                  *, extra: Dict[str, Any] | None = None, beat=None, stage=None) -> Dict[str, Any]:
     """Track ``sources`` as B streams of one batched tracker, as :func:`run_track`, but write each
     stream's outputs into its own folder ``outs[b]``: the output set one ``run_track`` of that
     source alone writes (the tracker treats every stream on its own, so its files are identical),
@@ -269,6 +328,12 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     and a way to stop the run by raising). Returns ``{"streams": [per stream: {"summary",
     "lengths" (track lengths, int64 numpy)}], "steps", "seconds", "tracker_seconds",
     "decode_seconds", "input_wait_seconds", "device"}``.
+
+    ``stage`` (None, or a callable that takes the run's ``checkpoint.fingerprint`` and returns a
+    ``pipelines.elastic.RankStage``: a sharded run's rank): the streams are staged in it, with
+    checkpoints every ``options.checkpoint_every`` steps (default 500 or 60 s) and one as each
+    stream ends (it is finished: a resumed run does not redo it); a resumed stage continues from
+    its checkpoint (the finished streams' results from it, the others from its step).
 
     Raises:
         as :func:`run_track`; the streams already written stay, the others leave no output.
@@ -294,16 +359,52 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     B = len(seqs)
     results: List[Dict[str, Any] | None] = [None] * B
     steps = 0
-    tracker_seconds = 0.0
+    started = [False] * B
+    # the times of the interrupted run(s) before the checkpoint, added to this run's
+    before = {"seconds": 0.0, "tracker_seconds": 0.0, "decode_seconds": 0.0, "input_wait_seconds": 0.0}
+    if stage is not None:
+        from . import checkpoint as ckpt
+
+        stage = stage(ckpt.fingerprint(cfgs, [ckpt.input_fingerprint(src, sq) for src, sq in zip(sources, seqs)],
+                                       opt.output_options(dev)))
+    resumed = None if stage is None else stage.resumed
+    if resumed is not None:
+        p = resumed.payload
+        tracker.load_state_dict(p["tracker"])
+        results = [p["finished"].get(b) for b in range(B)]
+        started = list(p["started"])
+        steps = resumed.frames
+        before = dict(p["times"])
+    tracker_seconds = before["tracker_seconds"]
+    ended: List[int] = []  # streams finished since the last checkpoint
     t0 = time.perf_counter()
 
+    def times_now() -> Dict[str, float]:
+        return {"seconds": before["seconds"] + time.perf_counter() - t0, "tracker_seconds": tracker_seconds,
+                "decode_seconds": before["decode_seconds"] + stream.decode_seconds,
+                "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
+
+    def checkpoint(recs) -> None:
+        ended.clear()
+        live = {b: r for b, r in enumerate(recs) if r is not None and results[b] is None}
+        stage.save(steps, {"tracker": tracker.state_dict(), "recorders": {b: r.counters() for b, r in live.items()},
+                           "finished": {b: r for b, r in enumerate(results) if r is not None},
+                           "started": list(started), "times": times_now()},
+                   {b: r.take_chunk() for b, r in live.items()})
+        for r in live.values():
+            r.keep_on_interrupt = True
+
     def finish(b: int, rec) -> None:
-        seconds = time.perf_counter() - t0
+        now = times_now()
+        seconds = now["seconds"]
         skipped = [(0, src, why) for sb, src, why in stream.skipped if sb == b]
+        times = _input_times(stream, opt.workers)
+        times["decode_seconds"] = round(now["decode_seconds"], 6)
+        times["input_wait_seconds"] = round(now["input_wait_seconds"], 6)
         info = {
             "steps": int(rec.frames[0]),
             "tracker_seconds": round(tracker_seconds, 6),
-            **_input_times(stream, opt.workers),
+            **times,
             "config": config_label([cfgs[b]]),
             "mode": opt.mode,
             "device": str(dev),
@@ -316,13 +417,29 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         copy_imu(rec, cfgs, sources, seqs, opt, streams=[b])
         rec.write(summary)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
+        ended.append(b)
+
+    def recorder(b: int):
+        if results[b] is not None:  # finished before the checkpoint this run continues from
+            return None
+        kw = {}
+        if stage is not None:
+            kw = {"adopt": stage.staging_of(Path(outs[b]).name), "journal": stage.writer.enabled}
+        return RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks, **opt.recorder_options(), **kw)
 
     with contextlib.ExitStack() as stack:
-        recs = [stack.enter_context(RunRecorder(outs[b], [names[b]], write_tracks=opt.write_tracks,
-                                                    **opt.recorder_options())) for b in range(B)]
-        started = [False] * B
+        recs = [recorder(b) for b in range(B)]
+        for r in recs:
+            if r is not None:
+                stack.enter_context(r)
+        if resumed is not None:
+            chunks = resumed.chunks
+            for b, r in enumerate(recs):
+                if r is not None:
+                    r.restore(resumed.payload["recorders"][b], [c[b] for c in chunks if b in c])
+                    r.keep_on_interrupt = True
         with progress_bar(opt.progress, frames_to_read(seqs, opt.max_frames), "tracking", "frame") as bar:
-            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar):
+            for batch, frame, step_seconds in tracked_batches(tracker, stream, dev, bar, start=steps):
                 tracker_seconds += step_seconds
                 if dev.type != "cpu":  # one copy per field, not one per stream
                     frame = _on_cpu(frame)
@@ -336,11 +453,24 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                 steps += 1
                 if beat is not None:
                     beat()
+                if stage is not None:
+                    from . import checkpoint as ckpt
+
+                    ckpt.frame_hook(steps)
+                    # one as a stream ends (after the whole step: every recorder has it), so
+                    # that a resumed run does not redo it
+                    if stage.writer.due(steps) or (ended and stage.writer.enabled):
+                        checkpoint(recs)
         for b in range(B):
             if results[b] is None:
                 finish(b, recs[b])
-    return {"streams": results, "steps": steps, "seconds": round(time.perf_counter() - t0, 6),
-            "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers), "device": str(dev)}
+        if stage is not None and stage.writer.enabled and ended:
+            checkpoint(recs)
+    now = times_now()
+    return {"streams": results, "steps": steps, "seconds": round(now["seconds"], 6),
+            "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers),
+            "decode_seconds": round(now["decode_seconds"], 6), "input_wait_seconds": round(now["input_wait_seconds"], 6),
+            "device": str(dev)}
 
 
 def _input_entry(source: Source, seq) -> Dict[str, Any]:

@@ -442,6 +442,22 @@ class FeatureTracker:
         if self._plans:
             self._remember_clock(self.state, HostClock.initial(self.B))
 
+    def state_dict(self) -> Dict:
+        """The tracker's state as plain CPU values with a version field (``tracker.checkpoint``):
+        ``torch.save`` it; a tracker of the same config, mode and stream count continues from it
+        with :meth:`load_state_dict`, on any device, bit for bit as this one would."""
+        from .checkpoint import tracker_state_dict
+
+        return tracker_state_dict(self)
+
+    def load_state_dict(self, state_dict: Dict) -> None:
+        """Continue from ``state_dict`` (:meth:`state_dict` of this or another tracker, saved on any
+        device). ``ValueError`` naming what differs for another version, mode, stream count or
+        config."""
+        from .checkpoint import load_tracker_state_dict
+
+        load_tracker_state_dict(self, state_dict)
+
     # ------------------------------------------------------------------ the clock's host mirror
     @property
     def _plans(self) -> bool:
