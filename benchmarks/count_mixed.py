@@ -5,7 +5,8 @@ batches).
 Usage (from the project root):
     .venv/bin/python benchmarks/count_mixed.py [--B 5 10] [--capturable] [--json out.json]
 
-Batches: ``homogeneous`` = B EuRoC streams (``configs/euroc.yaml``); ``five configs`` = the repo's
+Batches: ``homogeneous`` = B EuRoC streams (``configs/euroc.yaml``); ``rig of B calibrations`` =
+the same with every stream's own intrinsics (one group, a ``CameraBatch``); ``five configs`` = the repo's
 and VINS's shipped configs cycled over the B streams (pinhole 752x480, Kannala-Brandt 512x512
 fisheye, pinhole 640x480, MEI 752x480 equalize 0, Kannala-Brandt 752x480; the last four from
 ``../shared/data/vins_configs``), images given as one padded ``(B, 1, 512, 752)`` tensor with
@@ -16,6 +17,7 @@ cropped or padded to each stream's size.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -86,6 +88,13 @@ def main(argv=None) -> int:
         return 2
     euroc = tf.load_config(FIVE[0])
     five = [tf.load_config(p) for p in FIVE]
+    # a rig: B pinhole cameras of one size and VINS settings, each its own calibration (fx, cx varied)
+    rig = []
+    for b in range(max(args.B)):
+        p = euroc.camera.params_dict()
+        p.update(fx=p["fx"] * (1 + 0.01 * b), cx=p["cx"] + b)
+        cam = type(euroc.camera).from_params(p, width=euroc.image_width, height=euroc.image_height)
+        rig.append(dataclasses.replace(euroc, camera=cam))
     kw = {"capturable": True} if args.capturable else {"capturable": False}
     out = []
     alone = []
@@ -97,7 +106,9 @@ def main(argv=None) -> int:
               f"({r['syncs_excl_input']:.1f} besides the input upload)", flush=True)
     print(f"      sum of the five alone: {sum(r['kernels_per_step'] for r in alone):8.0f} kernels/step")
     for B in args.B:
-        for label, cfgs in (("homogeneous", [euroc] * B), ("five configs", [five[b % 5] for b in range(B)])):
+        batches = (("homogeneous", [euroc] * B), ("rig of B calibrations", rig[:B]),
+                   ("five configs", [five[b % 5] for b in range(B)]))
+        for label, cfgs in batches:
             r = dict(B=B, batch=label, **count(cfgs, B, args.warmup, args.steps, kw))
             out.append(r)
             if args.sites:

@@ -478,8 +478,12 @@ def test_mixed_config_tracker_module_gives_each_stream_its_own_intrinsics_gradie
         cam, row = m.stream_camera(b)
         stored.append(float(cam.fx if row is None else cam.fx[row]))
     assert stored == [c.camera.params_dict()["fx"] for c in cfgs]
-    m.float()  # the cameras stay float64, every group's tracker follows
+    m.float()  # the cameras stay float64 with their values (not rounded to float32), every group's tracker follows
     assert all(p.dtype == torch.float64 for p in m.parameters())
+    for b in range(3):
+        cam, row = m.stream_camera(b)
+        assert float(cam.fx if row is None else cam.fx[row]) == stored[b]
+        assert float(cam.fy if row is None else cam.fy[row]) == cfgs[b].camera.params_dict()["fy"]
     m.requires_grad_()
     singles = [tf.TrackerModule(c) for c in cfgs]
     for s in singles:

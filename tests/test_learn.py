@@ -257,6 +257,18 @@ def test_tracker_module_state_dict_to_and_forward(device):
         assert torch.equal(fr.uv.detach(), fr_ref.uv) and torch.equal(fr.ids, fr_ref.ids)
 
 
+@pytest.mark.parametrize("cast", ["float", "half", "to_float32"])
+def test_tracker_module_dtype_casts_keep_the_cameras_float64_values(cast):
+    """``.float()`` / ``.half()`` / ``.to(torch.float32)`` leave the camera parameters float64 with
+    their exact values (a cast to float32 and back would round fx = 458.654 to 458.6539916...)."""
+    m = TrackerModule(CFG, 1)
+    before = {k: v.clone() for k, v in m.state_dict().items()}
+    {"float": m.float, "half": m.half, "to_float32": lambda: m.to(torch.float32)}[cast]()
+    after = m.state_dict()
+    assert all(after[k].dtype == F64 and torch.equal(after[k], v) for k, v in before.items())
+    assert torch.equal(m.tracker.params.camera.fx, before["camera.fx"])
+
+
 def test_tracker_module_camera_parameters_train():
     m = TrackerModule(CFG, 1)
     m.camera.requires_grad_()

@@ -48,6 +48,7 @@ import contextlib
 import math
 import os
 import signal
+import re
 import sys
 from pathlib import Path
 from typing import Any, Dict, List, Sequence, Tuple
@@ -779,7 +780,9 @@ def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
     """``exc``'s message with its option name (which starts it) replaced by the command's flag."""
     msg = str(exc)
     flag = flags.get(exc.option)
-    return flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
+    msg = flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
+    # an option named inside the message (library style: in backticks) -> its flag
+    return re.sub(r"`([a-z_]+)`", lambda m: flags.get(m.group(1), m.group(0)), msg)
 
 
 def _os_error_message(exc: OSError, out) -> str:

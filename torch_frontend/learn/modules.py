@@ -122,7 +122,16 @@ class TrackerModule(nn.Module):
             self.camera1 = tracker.params.camera1  # None without a stereo camera (registered as absent)
 
     def _apply(self, fn, *args, **kwargs):
-        super()._apply(fn, *args, **kwargs)
+        def keep_float64(t: torch.Tensor) -> torch.Tensor:
+            # the cameras stay float64 with their values: a dtype change (.float(), .half(), .to(dtype))
+            # moves them only (fn then a cast back would round every parameter to float32)
+            if t.is_floating_point():
+                probe = fn(t.new_empty(0))
+                if probe.dtype != t.dtype:
+                    return t.to(device=probe.device)
+            return fn(t)
+
+        super()._apply(keep_float64, *args, **kwargs)
         # the cameras' parameters moved in place; the trackers' devices, masks and (float64) cameras follow
         device = next(self.parameters()).device
         t = self.tracker

@@ -75,8 +75,12 @@ def input_fingerprint(source, seq) -> str:
     """One input as a string: its kind, its absolute path (or the sequence's name) and the number
     of frames listed (a sequence that grew or was cut is another input)."""
     if isinstance(source, tuple):
-        kind, path = source
+        kind, path = source[:2]
         where = os.path.abspath(str(path))
+        # a rig entry's reader options (camera folder, topic, fps) choose other frames
+        opts = source[2] if len(source) > 2 and source[2] else {}
+        if opts:
+            where += " " + ", ".join(f"{k}={v!r}" for k, v in sorted(dict(opts).items()))
     else:
         kind, where = getattr(seq, "kind", type(seq).__name__), str(getattr(seq, "name", ""))
     return f"{kind} {where} ({len(seq)} frames listed)"
@@ -248,7 +252,7 @@ def load_checkpoint(stage: Path) -> Checkpoint:
     if not isinstance(state, dict) or state.get("version") != FORMAT_VERSION:
         v = state.get("version") if isinstance(state, dict) else None
         raise ResumeError(f"{d}: a checkpoint of format {v!r}, this torch-frontend resumes format {FORMAT_VERSION} "
-                          f"only; rerun without --resume to start over")
+                          f"only; rerun without `resume` to start over")
     chunks = []
     for i in range(int(state["chunks"])):
         with open(d / _CHUNKS / f"{i:06d}.pkl", "rb") as fh:
@@ -286,7 +290,7 @@ def resume_point(out, fingerprint: Dict[str, str]) -> Optional[Checkpoint]:
         diff = fingerprint_difference(ck.fingerprint, fingerprint)
         if diff is not None:
             raise ResumeError(f"resume: cannot continue the interrupted run of {out}: {diff}; rerun without "
-                              f"--resume to start over")
+                              f"`resume` to start over")
         ck.stage = adopt_staging(stage, target)
         return ck
     return None
