@@ -47,8 +47,8 @@ import argparse
 import contextlib
 import math
 import os
-import signal
 import re
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Dict, List, Sequence, Tuple
