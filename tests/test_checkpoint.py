@@ -54,8 +54,11 @@ def _same(a, b) -> bool:
         (torch.equal(x, y) and x.dtype == y.dtype) if isinstance(x, torch.Tensor) else x == y for x, y in zip(la, lb))
 
 
-@pytest.mark.parametrize("mode", ["mono", "fusion"])
-@pytest.mark.parametrize("capturable", [False, True], ids=["default", "capturable"])
+@pytest.mark.parametrize("capturable, mode", [
+    pytest.param(False, "mono", id="default-mono"), pytest.param(False, "fusion", id="default-fusion"),
+    pytest.param(True, "mono", id="capturable-mono"),
+    pytest.param(True, "fusion", id="capturable-fusion", marks=pytest.mark.slow),
+])
 def test_round_trip_mid_sequence_continues_bit_identical(cfg, frames, mode, capturable):
     images, stamps, active = frames
     kw = dict(num_streams=2, mode=mode, capturable=capturable)

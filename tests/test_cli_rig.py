@@ -266,6 +266,7 @@ def _loop(capsys, root: Path, out: Path, *inputs):
                    "--out", out, "--no-progress")
 
 
+@pytest.mark.slow  # covered by the sharded track's per-input configs (test_distributed.py) (make test-all and CI run it)
 def test_loop_keeps_each_inputs_config(loop_rig, tmp_path, capsys):
     r = loop_rig
     one = ("--images", r / "images", "--poses", r / "vio.csv")

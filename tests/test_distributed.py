@@ -491,6 +491,7 @@ def test_loop_shared_map_two_ranks_matches_one_process(loop_inputs, tmp_path):
     assert [r["streams"] for r in b["distributed"]["ranks"]] == [[0], [1]]
 
 
+@pytest.mark.slow  # the shared-map case above runs the same sharding (make test-all and CI run it)
 def test_loop_separate_graphs_two_ranks_matches_one_process(loop_inputs, tmp_path):
     """One graph per input on its rank (the vocabulary trained once on both inputs' keyframes):
     each ``stream<b>/`` holds the one-process run's trajectories and pose graph of input b."""

@@ -150,6 +150,7 @@ def loop_job(tmp_path_factory):
     return args, ref
 
 
+@pytest.mark.slow  # covered by the track case and test_resume_loop.py (make test-all and CI run it)
 def test_torchrun_loop_rank_killed_once(loop_job, tmp_path):
     """Shared map: rank 1 killed while tracking (after its checkpoint at step 4); restarted, both
     ranks resume their tracking, rank 0 builds the graph: the one-process run's outputs."""

@@ -184,7 +184,7 @@ def _other_fx(cfg, scale):
     return dataclasses.replace(cfg, camera=type(cam).from_params(p, width=cam.width, height=cam.height))
 
 
-@pytest.mark.parametrize("path", ["default", "capturable"])
+@pytest.mark.parametrize("path", ["default", pytest.param("capturable", marks=pytest.mark.slow)])
 def test_rig_of_calibrations_is_one_group_with_a_camera_batch(path):
     """Four cameras of one model and size with their own calibrations (a rig): one group, its camera
     a CameraBatch, the homogeneous step's launches; each stream equals its own tracker."""

@@ -142,6 +142,7 @@ def test_resume_of_another_run_is_refused_in_one_line(capsys, inputs, references
     assert_same_outputs(references(), out)
 
 
+@pytest.mark.slow  # covered by the faster cases (make test-all and CI run it)
 def test_without_resume_the_run_starts_over(capsys, inputs, references, tmp_path):
     out = tmp_path / "out"
     _killed(inputs, out, "frame:7", "--checkpoint-every", EVERY)
@@ -178,6 +179,7 @@ def test_killed_twice(capsys, inputs, references, tmp_path):
     assert_same_outputs(references(), out)
 
 
+@pytest.mark.slow  # covered by the faster cases (make test-all and CI run it)
 def test_sigterm_keeps_the_checkpoint_for_resume(capsys, inputs, references, tmp_path):
     out = tmp_path / "out"
     p = _killed(inputs, out, "term:7", "--checkpoint-every", EVERY, expect=143)

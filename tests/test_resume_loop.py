@@ -276,7 +276,7 @@ def resume(args, out, *extra) -> int:
 
 @pytest.mark.parametrize("kill_at, phase", [
     ("frame:7", "tracking"),  # while tracking, after the checkpoint at step 6
-    ("checkpoint:8", "graphs"),  # in the middle of a pose-graph checkpoint: the one before it is used
+    pytest.param("checkpoint:8", "graphs", marks=pytest.mark.slow),  # mid pose-graph checkpoint: the one before it is used
     pytest.param("checkpoint:2", "tracking", marks=pytest.mark.slow),  # in the middle of a tracking one
     pytest.param("checkpoint:6", "tracking", marks=pytest.mark.slow),  # in the middle of the prepared one
     pytest.param("keyframe:5", "graphs", marks=pytest.mark.slow),  # while building the pose graph
@@ -303,6 +303,7 @@ def test_loop_killed_twice(loop_cli, tmp_path):
     assert_same_loop_outputs(ref, out)
 
 
+@pytest.mark.slow  # covered by the track refusals (test_resume.py) (make test-all and CI run it)
 def test_loop_resume_refused_for_another_run_and_start_over_without_it(loop_cli, tmp_path, capsys):
     """A resume with other options or other poses is refused with one line naming what differs
     (nothing touched); without --resume the run starts over and removes the checkpoint."""
