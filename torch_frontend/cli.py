@@ -777,7 +777,8 @@ def _error(msg: str) -> None:
 
 
 def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
-    """``exc``'s message with its option name (which starts it) replaced by the command's flag."""
+    """``exc``'s message with its option name (which starts it) and every option named in backticks
+    inside it (the library's style: "rerun without `resume`") replaced by the command's flags."""
     msg = str(exc)
     flag = flags.get(exc.option)
     msg = flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg

@@ -78,9 +78,9 @@ def input_fingerprint(source, seq) -> str:
         kind, path = source[:2]
         where = os.path.abspath(str(path))
         # a rig entry's reader options (camera folder, topic, fps) choose other frames
-        opts = source[2] if len(source) > 2 and source[2] else {}
+        opts = dict(source[2] or {}) if len(source) > 2 else {}
         if opts:
-            where += " " + ", ".join(f"{k}={v!r}" for k, v in sorted(dict(opts).items()))
+            where += " " + ", ".join(f"{k}={v!r}" for k, v in sorted(opts.items()))
     else:
         kind, where = getattr(seq, "kind", type(seq).__name__), str(getattr(seq, "name", ""))
     return f"{kind} {where} ({len(seq)} frames listed)"
