@@ -67,3 +67,59 @@ def test_missing_tool_is_a_clear_error(tmp_path, capsys):
 def test_gpu_script_runs_the_model():
     text = (REPO / "benchmarks" / "gpu.sh").read_text()
     assert "roofline_report.py run" in text and "roofline_report.py beside" in text
+
+
+_FAKE_SIMCUDA = '''
+import weakref
+
+class T:
+    pass
+
+def _handle(x):
+    orig = {id(x): x}
+
+    def wrap(y):
+        if isinstance(y, list):
+            return [wrap(v) for v in y]  # calls itself: a reference cycle holding orig
+        return orig.get(id(y), y)
+
+    out = x
+    return wrap(out)
+'''
+
+
+def _fake_tool(tmp_path, handle_src):
+    (tmp_path / "simcuda.py").write_text(handle_src)
+    (tmp_path / "roofline.py").write_text(
+        "import gc, sys, weakref\nimport simcuda\n\n"
+        "def main(argv):\n"
+        "    gc.disable()\n"
+        "    t = simcuda.T()\n"
+        "    simcuda._handle(t)\n"
+        "    r = weakref.ref(t)\n"
+        "    del t\n"
+        "    print('freed' if r() is None else 'alive', argv)\n"
+        "    return 0\n")
+    return str(tmp_path / "roofline.py")
+
+
+def test_tool_frees_inplace_inputs_at_their_last_reference(tmp_path, capsys, monkeypatch):
+    """``_tool`` rewrites simcuda's ``return wrap(out)`` so that an op's inputs do not outlive it
+    in the wrapper's reference cycle (the tool's peak memory); here a stand-in tool shows it."""
+    mod = _report()
+    tool = _fake_tool(tmp_path, _FAKE_SIMCUDA)
+    monkeypatch.setattr("sys.path", list(__import__("sys").path))
+    monkeypatch.delitem(__import__("sys").modules, "simcuda", raising=False)
+    monkeypatch.delitem(__import__("sys").modules, "roofline", raising=False)
+    assert mod.main(["_tool", tool, "--B", "1"]) == 0
+    assert "freed ['--B', '1']" in capsys.readouterr().out
+
+
+def test_tool_refuses_a_changed_simcuda(tmp_path, capsys, monkeypatch):
+    mod = _report()
+    tool = _fake_tool(tmp_path, _FAKE_SIMCUDA.replace("return wrap(out)", "return wrap(x)"))
+    monkeypatch.setattr("sys.path", list(__import__("sys").path))
+    monkeypatch.delitem(__import__("sys").modules, "simcuda", raising=False)
+    monkeypatch.delitem(__import__("sys").modules, "roofline", raising=False)
+    assert mod.main(["_tool", tool]) == 2
+    assert "--keep-inplace-cycle" in capsys.readouterr().err

@@ -98,6 +98,13 @@ def _iota(n: int, device: torch.device) -> torch.Tensor:
     return torch.arange(n, device=device)
 
 
+@cached(16)
+def _i64_min(device: torch.device) -> torch.Tensor:
+    """``_I64_MIN`` as a 0-dim int64 tensor on ``device`` (cached constant: ``where(..., out=)`` takes
+    no Python number)."""
+    return torch.tensor(_I64_MIN, device=device)
+
+
 def _distance_threshold(d2_max: int) -> Tuple[torch.dtype, float]:
     """``(dtype, t)`` such that for integer points, ``cdist(p, p) <= t`` in ``dtype`` iff ``d² <=
     d2_max``: t is the midpoint of ``sqrt(d2_max)`` and ``sqrt(d2_max + 1)``, which lie many ulps
@@ -290,6 +297,7 @@ def _select_corners_capturable(
     thr = (max_val.double() * float(quality_level)).to(resp.dtype)
     t = torch.where(resp > thr[:, None, None], resp, 0.0)
     cand = _nms_candidates(t)
+    del t  # image-sized: dropped before the int64 keys exist (the step's peak memory)
     if m is not None:
         cand &= m
     cand = cand.view(B, HW)
@@ -300,9 +308,14 @@ def _select_corners_capturable(
         # unique int64 key, larger = earlier in OpenCV's order: float32 bits made order-preserving
         # as signed ints (negative values: flip the magnitude bits), then the raster index (ties:
         # later raster position first)
+        # (in place on the one int64 copy: two int64 planes at a time, the step's peak memory)
         bits = resp.reshape(B, HW).view(torch.int32).to(torch.int64)
-        bits ^= (bits >> 31) & 0x7FFFFFFF
-        key = torch.where(cand, (bits << ib) + _iota(HW, dev), _I64_MIN)
+        neg = bits >> 31
+        bits ^= neg.bitwise_and_(0x7FFFFFFF)
+        del neg
+        bits.bitwise_left_shift_(ib).add_(_iota(HW, dev))
+        key = torch.where(cand, bits, _i64_min(dev), out=bits)  # elementwise, into its own input
+        del bits
         top = torch.topk(key, Cb, dim=1)
         idx, cvalid = top.indices, top.values != _I64_MIN
     else:

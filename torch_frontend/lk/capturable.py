@@ -84,23 +84,34 @@ def _capturable_consts(dtype: torch.dtype, device):
 def _difference_image(Jp: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
     """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 4)`` windows' source: at ``(y, x)``
     the channels ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]``
-    (one ``matmul`` with ``C`` of the stacked pixels: integers times ``0, +-2^-9``, sums of two,
-    exact in any order and in TF32). OpenCV's fixed-point sample ``sum iw_ab J_ab 2^-9`` is then one
-    dot product with ``(iw00, iw01, iw10, 2^14)``: exact (integers times ``2^-9`` below ``2^23``),
-    whatever the order of the multiply-adds.
+    (integers times ``0, +-2^-9``, sums of two: exact in any order and in TF32). OpenCV's
+    fixed-point sample ``sum iw_ab J_ab 2^-9`` is then one dot product with ``(iw00, iw01, iw10,
+    2^14)``: exact (integers times ``2^-9`` below ``2^23``), whatever the order of the multiply-adds.
 
     The blocks run over the streams' flattened pixels, row pitch ``Wp``: the last column's block
     wraps into the next row (and the last row's into the next stream); such blocks are read only as
     the junk column of the pitched windows (zero derivative weight) of outside origins. Returned as
     a flat ``(B Hp Wp + 1, 4)`` buffer whose last block (read by the last stream's bottom-right
-    margin window only) is zero: every window view stays inside it and every value is finite."""
+    margin window only) is zero: every window view stays inside it and every value is finite.
+
+    Written channel by channel from the scaled level (one image-sized float temporary, not the
+    four stacked pixels of a ``matmul`` with ``C``: the step's peak memory sits here at level 0);
+    the values are the same (each channel is exact either way). Under the compiler, which takes no
+    strided ``out=``, or with a derivative: the stacked pixels times ``C``."""
     Jf = Jp.reshape(-1)
     Wp = Jp.shape[-1]
     L = Jf.numel() - Wp - 1  # blocks with all four pixels inside the buffer
-    S = torch.stack((Jf[:L], Jf[1:L + 1], Jf[Wp:Wp + L], Jf[Wp + 1:]), -1)  # (L, 4)
-    D = torch.empty((Jf.numel() + 1, 4), dtype=S.dtype, device=S.device)
+    D = torch.empty((Jf.numel() + 1, 4), dtype=Jf.dtype, device=Jf.device)
     D[L:].zero_()
-    torch.matmul(S, C, out=D[:L])
+    if torch.compiler.is_compiling() or not _tuning.inplace_ok(Jf):
+        S = torch.stack((Jf[:L], Jf[1:L + 1], Jf[Wp:Wp + L], Jf[Wp + 1:]), -1)  # (L, 4)
+        torch.matmul(S, C, out=D[:L])
+        return D
+    Js = Jf * C[3, 3]  # 2^-9: exact
+    j11 = Js[Wp + 1:]
+    torch.sub(Js.as_strided((L, 2), (1, 1)), j11.unsqueeze(1), out=D[:L, 0:2])  # J00, J01 - J11
+    torch.sub(Js[Wp:Wp + L], j11, out=D[:L, 2])  # J10 - J11
+    D[:L, 3].copy_(j11)
     return D
 
 
@@ -271,6 +282,8 @@ def _lk_capturable(
         else:
             iv_init = False
         if fast:
+            # the coarser level's windows' source is dead: drop it before this one exists (peak memory)
+            D = Dw = tabs = None
             grid, inside_tab = _capturable_tables(H, W, ww, wh, dtype, dev)
             w_off, w_sgn, w_C = _capturable_consts(dtype, dev)
             Hp, Wp = Jpad.shape[-2:]

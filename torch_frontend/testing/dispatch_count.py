@@ -15,6 +15,10 @@
   written byte is read at least once more, or it was not needed) and a bound on its peak tensor.
   Bytes read are not counted (a gather's source is a view of the whole tensor; see
   ``../shared/tools/cuda_sim/roofline.py`` for the read side);
+* ``c.peak_live``: the peak of the bytes held at once by the storages the block's ops made or
+  wrote (kernel and allocation outputs, views of them), each freed at its last tensor reference
+  as a GPU's caching allocator would reuse it (no pool rounding): the block's transient peak plus
+  what it writes of the longer-lived state; ``c.live_site`` names the op where it was reached;
 * ``c.uploads``: tensors made from host data inside the block (``torch.tensor(...)``,
   ``lift_fresh``): on CUDA each is a blocking host-to-device copy, i.e. a sync as well (counted
   in ``c.syncs`` too).
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import collections
 import sys
+import weakref
 from pathlib import Path
 from typing import Dict, Tuple
 
@@ -94,6 +99,10 @@ class OpCounter(TorchDispatchMode):
         self.uploads = 0
         self.bytes_written = 0
         self.largest = 0
+        self.live_bytes = 0
+        self.peak_live = 0
+        self.live_site = ""
+        self._live: Dict[int, list] = {}  # storage data_ptr -> [tensor references, nbytes]
         self.sites: Dict[Tuple[str, str], int] = collections.Counter()
         self.names: Dict[str, int] = collections.Counter()
         self._saved = None
@@ -149,8 +158,41 @@ class OpCounter(TorchDispatchMode):
                     nb = t.numel() * t.element_size()
                     self.bytes_written += nb
                     self.largest = max(self.largest, nb)
+            self._track(out, name, new=True)
             return out
-        return func(*args, **kwargs)
+        out = func(*args, **kwargs)
+        self._track(out, name, new=name in _ALLOC_NAMES)
+        return out
+
+    def _track(self, out, name: str, new: bool) -> None:
+        """Live storages: a kernel's or an allocation's outputs (``new``) start one; a view of a
+        tracked storage adds a reference. Each tensor reference drops at its finalisation."""
+        for t in (out if isinstance(out, (tuple, list)) else (out,)):
+            if not isinstance(t, torch.Tensor) or t.device.type == "meta":
+                continue
+            try:
+                st = t.untyped_storage()
+                ptr, nb = st.data_ptr(), st.nbytes()
+            except (RuntimeError, NotImplementedError):  # no storage (a wrapper subclass)
+                continue
+            e = self._live.get(ptr)
+            if e is None:
+                if not new or nb == 0:
+                    continue
+                e = self._live[ptr] = [0, nb]
+                self.live_bytes += nb
+                if self.live_bytes > self.peak_live:
+                    self.peak_live, self.live_site = self.live_bytes, f"{name} at {_site()}"
+            e[0] += 1
+            weakref.finalize(t, self._release, ptr)
+
+    def _release(self, ptr: int) -> None:
+        e = self._live.get(ptr)
+        if e is not None:
+            e[0] -= 1
+            if e[0] <= 0:
+                self.live_bytes -= e[1]
+                del self._live[ptr]
 
     def summary(self) -> str:
         """One line of totals and the sync sites, for messages."""
