@@ -744,3 +744,31 @@ def test_nan_propagates_and_empty_input(name):
     assert cam.lift(torch.zeros(0, 2, dtype=torch.float64)).shape == (0, 3)
     assert cam.project(torch.zeros(2, 0, 3, dtype=torch.float64)).shape == (2, 0, 2)
     assert cam.lift(torch.tensor([120.0, 100.0], dtype=torch.float64)).shape == (3,)
+
+
+@pytest.mark.parametrize("pshape", [(), (3, 1)], ids=["scalar_params", "per_stream_params"])
+def test_stacked_radtan_undistort_equals_the_per_component_loop(pshape):
+    """``radtan_undistort`` runs ``radtan_distortion``'s formula on stacked (x, y) (about half the
+    kernels); every value equals the per-component loop's bit for bit, for scalar and per-stream
+    coefficients (broadcast to ``(B, N)`` points), the zero-distortion shortcut included."""
+    from torch_frontend.camera.base import radtan_distortion, radtan_undistort
+
+    g = torch.Generator().manual_seed(7)
+    x, y = (torch.rand(3, 50, generator=g, dtype=torch.float64) * 1.6 - 0.8 for _ in range(2))
+    x[0, 0] = math.inf
+    for ks in ((-0.28, 0.07, 2e-4, 1.8e-5), (0.0, 0.0, 0.0, 0.0)):
+        k1, k2, p1, p2 = (torch.full(pshape, v, dtype=torch.float64) for v in ks)
+        dx, dy = radtan_distortion(x, y, k1, k2, p1, p2)
+        mx, my = x - dx, y - dy
+        for _ in range(7):
+            dx, dy = radtan_distortion(mx, my, k1, k2, p1, p2)
+            mx, my = x - dx, y - dy
+        zero = (k1 == 0) & (k2 == 0) & (p1 == 0) & (p2 == 0)
+        mx = torch.where(zero & ~torch.isfinite(mx), x, mx)
+        my = torch.where(zero & ~torch.isfinite(my), y, my)
+        ux, uy = radtan_undistort(x, y, k1, k2, p1, p2, 8)
+        assert ux.shape == uy.shape == (3, 50)
+        # bit for bit, NaN where the loop made one (the inf point with distortion)
+        torch.testing.assert_close(ux, mx, rtol=0, atol=0, equal_nan=True)
+        torch.testing.assert_close(uy, my, rtol=0, atol=0, equal_nan=True)
+        assert ux.isfinite().sum() >= 149, ks

@@ -25,6 +25,9 @@ OPS_PER_ITERATION = 21
 #: 9 gathers of the lanes' state, the flag of the lanes left without a seat (3), 3 write-backs, less
 #: the 2 ops the split saves at the first tail iteration
 TAIL_OPS = 15
+#: aten ops per level of each further stage of the split (lk.capturable._split_plan): the same, plus
+#: the write-back of the sub-batch's own flag of lanes left without a seat
+STAGE_OPS = 16
 
 
 @pytest.fixture(scope="module")
@@ -253,8 +256,12 @@ def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
     bound = OPS_PER_ITERATION + (dtype == torch.float64)
     assert per_iteration <= bound, per_iteration
     # linear in the budget: 27 more iterations on 6 levels (less the overflow bookkeeping), plus the
-    # full budget's tail split on each level
-    full = counts[1, 3] + 27 * 6 * per_iteration + 6 * TAIL_OPS
+    # full budget's split on each level (32 lanes: 16 seats from iteration 8, 8 from 12)
+    from torch_frontend.lk.capturable import _split_plan
+
+    stages = len(_split_plan(32, 30, lk.LKOptions().tail_share))
+    assert stages == 2
+    full = counts[1, 3] + 27 * 6 * per_iteration + 6 * (TAIL_OPS + (stages - 1) * STAGE_OPS)
     assert full - 12 <= counts[1, None] <= full
 
 
@@ -282,3 +289,20 @@ def test_capturable_gradients(frames, device, dtype, fixed):
     for g1, g2 in ((ga1, ga2), (gb1, gb2)):
         assert g1.abs().sum() > 0
         torch.testing.assert_close(g2, g1, **tol)
+
+
+def test_split_plan():
+    """The full budget's stages: ``1/tail_share`` of the lanes from iteration 8 (at least 16), a
+    quarter of those from 12 (at least 8) from ``tail_share`` 8 up; a stage that would seat every
+    lane of the one before is left out; none for ``tail_share`` 1, an odd rest or a short budget."""
+    from torch_frontend.lk.capturable import _split_plan
+
+    assert _split_plan(150, 30, 8) == ((8, 19), (12, 8))
+    assert _split_plan(9600, 30, 8) == ((8, 1200), (12, 300))
+    assert _split_plan(9600, 30, 16) == ((8, 600), (12, 150))
+    assert _split_plan(144, 30, 2) == ((8, 72),)  # a smaller share: the first stage only
+    assert _split_plan(24, 30, 8) == ((8, 16), (12, 8))
+    assert _split_plan(16, 30, 8) == ((12, 8),)  # 16 seats would seat every lane
+    assert _split_plan(8, 30, 8) == ()
+    assert _split_plan(150, 30, 1) == () and _split_plan(150, 31, 8) == () and _split_plan(150, 8, 8) == ()
+    assert _split_plan(150, 10, 8) == ((8, 19),)

@@ -129,27 +129,85 @@ def _bmm_exact(device) -> bool:
     return torch.device(device).type != "cuda" or not torch.backends.cuda.matmul.allow_tf32
 
 
-#: The fast iterations' split (full budget only, ``LKOptions.tail_share``): ``_TAIL_FROM``
-#: iterations on every lane, then the rest of ``max_iters`` on a fixed sub-batch of
-#: ``_tail_lanes(...)`` lanes, the running ones first. OpenCV stops most lanes early (converged or
-#: oscillating): on EuRoC V1_01 (95 frames, 380 level passes of 150 lanes) at most 2 lanes ran past
-#: 8 iterations (10 past 6, none past 12), so the other ~22 of the 30 iterations of every lane were
-#: masked no-ops that moved ~half of the capturable step's bytes. A lane still running after
-#: ``_TAIL_FROM`` that finds no seat stops there and raises its stream's ``overflow`` flag (the one
-#: case where the result may differ from OpenCV's); with a seat, the result is the full budget's
-#: bit for bit. ``_TAIL_FROM`` and the budget's rest are even: the iterations alternate two test
-#: buffers and the step's sign, so the lanes left behind stay on the parity the level's end reads.
-_TAIL_FROM = 8
-#: the sub-batch's least seats (``tail_share`` gives an eighth of the lanes by default)
-_TAIL_MIN_LANES = 16
+#: The fast iterations' split of a full budget (``LKOptions.tail_share``): the lanes run in stages,
+#: each on a fixed sub-batch of the one before, the running lanes first. OpenCV stops most lanes
+#: early (converged or oscillating), so most of the 30 iterations of most lanes are masked no-ops
+#: that move bytes and change no bit (a frozen lane recomputes the same step). Stages as ``(first
+#: iteration, seats x tail_share / lanes, least seats)``: iterations 8-11 on ``1/tail_share`` of
+#: the lanes (at least 16: the split's first form), 12-29 on a quarter of those (at least 8). The
+#: second stage is the default's refinement, kept only from ``tail_share`` 8 up (a smaller share
+#: asks for more seats). Measured on the golden scenarios' temporal tracking (EuRoC mono, mono8,
+#: micro = V1_01's 95 frames, TUM-VI fisheye, the planar flight: 616 level passes of 150-300
+#: lanes), the largest share of lanes still running was 0.027 after 8 iterations (V1_01: 2 lanes of
+#: 150 past 8, none past 12); on ``tests/test_lk_capturable.py``'s warps of up to 12 px, 2 of 144
+#: lanes ran past 12 (one level with 12 px: 40, hence the gate). An earlier stage does not pay:
+#: after 4 iterations up to 14 % of the lanes of real frames still run, and over half of a
+#: 12-px warp's backward check. A running lane that finds no seat stops there and raises its
+#: stream's ``overflow`` flag (the one case where the result may differ from OpenCV's); with
+#: seats for all, the result is the full budget's bit for bit. Every stage starts on an even
+#: iteration and the budget's rest is even: the iterations alternate two test buffers and the
+#: step's sign, so the lanes left behind stay on the parity the level's end reads. Lane-iterations
+#: per level: 1,618 for 150 lanes with the split at 8 alone, 1,420 with both stages (B = 64:
+#: 103,200 -> 87,000).
+_STAGES = ((8, 1.0, 16), (12, 0.25, 8))
+#: the least ``tail_share`` that keeps the stages after the first
+_LATE_MIN_SHARE = 8
+#: the split's first stage (the tail's start), as the docs and tests name it
+_TAIL_FROM = _STAGES[0][0]
+
+
+def _split_plan(M: int, budget: int, share: int) -> Tuple[Tuple[int, int], ...]:
+    """The stages of a level's fast iterations for ``M`` lanes, a budget and ``tail_share``: a tuple
+    of ``(first iteration, seats)``, each stage's seats fewer than the stage before it (a stage
+    that would seat every lane of the one before is left out); empty: every lane runs every
+    iteration (``share`` 1, a budget that is not the full one, or too few lanes)."""
+    if share <= 1:
+        return ()
+    plan, m = [], M
+    for k, (j, factor, least) in enumerate(_STAGES):
+        if j >= budget or (budget - j) % 2 or (k and share < _LATE_MIN_SHARE):
+            break
+        seats = max(least, math.ceil(M * factor / share))
+        if seats < m:
+            plan.append((j, seats))
+            m = seats
+    return tuple(plan)
 
 
 def _tail_lanes(M: int, budget: int, share: int) -> int:
-    """Seats of the tail sub-batch for ``M`` lanes, a level budget and ``tail_share`` (0: no split)."""
-    m2 = max(_TAIL_MIN_LANES, -(-M // share))
-    if budget <= _TAIL_FROM or (budget - _TAIL_FROM) % 2 or m2 >= M:
-        return 0
-    return m2
+    """Seats of the first sub-batch of :func:`_split_plan` (0: no split)."""
+    plan = _split_plan(M, budget, share)
+    return plan[0][1] if plan else 0
+
+
+def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0=None):
+    """Iterations ``j0 .. budget - 1`` of the fast path on ``m`` lanes, in place in ``p`` and
+    ``tst``, with the sub-batch stages ``plan`` (:func:`_split_plan`, the ones from ``j0`` on): the
+    lanes run together up to the next stage, whose seats go to the running lanes first (a stable
+    sort of the device's own mask: no sync); the sub-batch recurses on the rest of the plan and is
+    written back. Returns ``(sd, sdp, moved0, lost)``: as :func:`_fast_iterations`, and ``(m,)``
+    bool of the lanes still running at a stage's start without a seat (None without a stage)."""
+    j1 = plan[0][0] if plan else budget
+    sd, sdp, moved0 = _fast_iterations(j0, j1, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0)
+    if not plan:
+        return sd, sdp, moved0, None
+    m2 = plan[0][1]
+    # the frozen lanes would only repeat their step: they stay behind
+    running = tst[j1 % 2, 2]
+    rows = torch.sort((~running).to(torch.uint8), stable=True).indices[:m2]
+    sub_p, sub_tst = p.index_select(1, rows), tst.index_select(2, rows)
+    sub_sd, _, _, sub_lost = _staged_iterations(
+        j1, budget, plan[1:], sub_p, sub_tst, sdp.index_select(0, rows), lanes.index_select(0, rows),
+        hiv.index_select(0, rows), g.index_select(0, rows), Cs.index_select(1, rows),
+        dinv_c.index_select(0, rows), tabs, moved0)
+    # running lanes without a seat stop here (still running: status kept, no stopping step)
+    lost = running.index_fill(0, rows, False)
+    if sub_lost is not None:
+        lost.index_copy_(0, rows, sub_lost)
+    p.index_copy_(1, rows, sub_p)
+    tst.index_copy_(2, rows, sub_tst)
+    sd.index_copy_(0, rows, sub_sd)
+    return sd, sdp, moved0, lost
 
 
 def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0=None):
@@ -313,25 +371,11 @@ def _lk_capturable(
         sdp = None
         if fast:
             tabs = (Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp)
-            m2 = _tail_lanes(M, budget, opts.tail_share) if budget == opts.max_iters else 0
-            n1 = _TAIL_FROM if m2 else budget
-            sd, sdp, moved0 = _fast_iterations(0, n1, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs)
-            if m2:
-                # the rest of the budget on m2 lanes, the running ones first (a stable sort of the
-                # device's own mask: no sync); the others are frozen and would only repeat their step
-                running = tst[n1 % 2, 2]
-                rows = torch.sort((~running).to(torch.uint8), stable=True).indices[:m2]
-                sub_p, sub_tst = p.index_select(1, rows), tst.index_select(2, rows)
-                sub_sd, _, _ = _fast_iterations(
-                    n1, budget, sub_p, sub_tst, sdp.index_select(0, rows), lanes.index_select(0, rows),
-                    hiv.index_select(0, rows), g.index_select(0, rows), Cs.index_select(1, rows),
-                    dinv_c.index_select(0, rows), tabs, moved0)
-                # running lanes without a seat stop here (still running: status kept, no stopping step)
-                lost = running.index_fill(0, rows, False).view(B, N).any(1)
+            plan = _split_plan(M, budget, opts.tail_share) if budget == opts.max_iters else ()
+            sd, sdp, moved0, lost = _staged_iterations(0, budget, plan, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs)
+            if lost is not None:
+                lost = lost.view(B, N).any(1)
                 overflow = lost if overflow is None else overflow | lost
-                p.index_copy_(1, rows, sub_p)
-                tst.index_copy_(2, rows, sub_tst)
-                sd.index_copy_(0, rows, sub_sd)
             j = budget - 1
             sg = 1.0 - 2.0 * (j % 2)
             t, run = tst[j % 2], tst[1 - j % 2, 2]
