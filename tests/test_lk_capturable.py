@@ -14,6 +14,7 @@ import torch
 from tests.conftest import DTYPES, load_gray, sample_frames
 from torch_frontend import lk
 from torch_frontend.errors import ConfigError
+from torch_frontend.lk import capturable as lk_capturable
 from torch_frontend.pyramid import build_pyramid
 from torch_frontend.testing.dispatch_count import OpCounter
 
@@ -89,9 +90,15 @@ def _assert_same(e, s):
             (name, (a != b).sum().item() if a.shape == b.shape else None)
 
 
+@pytest.fixture
+def every_stage(monkeypatch):
+    """Every stage of the full budget's split at the tests' small batches (``_STAGE_MIN_SEATS`` 0)."""
+    monkeypatch.setattr(lk_capturable, "_STAGE_MIN_SEATS", 0)
+
+
 @pytest.mark.parametrize("mode", ["uint8", "float", "fixed_on_float"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-def test_capturable_equals_eager(frames, device, dtype, mode):
+def test_capturable_equals_eager(frames, device, dtype, mode, every_stage):
     """Bit for bit, a mixed batch and one stream, without and with initial guesses (NaN and inf ones
     too), padded lanes, points at and beyond the borders: fixed point (8-bit images), float
     interpolation (float images) and fixed point on float images, float32 and float64 points."""
@@ -187,7 +194,7 @@ def test_budget_and_overflow(frames):
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=["f32", "f64"])
-def test_tail_split(frames, dtype):
+def test_tail_split(frames, dtype, every_stage):
     """The full budget's split (``tail_share``): after 8 iterations on every lane the rest run on a
     sub-batch, the running lanes first. With seats for every running lane the result is the eager
     path's bit for bit (lanes did need more than 8 iterations: an 8-iteration budget differs); a
@@ -256,11 +263,10 @@ def test_no_syncs_and_kernels_independent_of_batch(frames, dtype):
     bound = OPS_PER_ITERATION + (dtype == torch.float64)
     assert per_iteration <= bound, per_iteration
     # linear in the budget: 27 more iterations on 6 levels (less the overflow bookkeeping), plus the
-    # full budget's split on each level (32 lanes: 16 seats from iteration 8, 8 from 12)
+    # full budget's split on each level (32 lanes: 16 seats from iteration 8)
     from torch_frontend.lk.capturable import _split_plan
 
     stages = len(_split_plan(32, 30, lk.LKOptions().tail_share))
-    assert stages == 2
     full = counts[1, 3] + 27 * 6 * per_iteration + 6 * (TAIL_OPS + (stages - 1) * STAGE_OPS)
     assert full - 12 <= counts[1, None] <= full
 
@@ -297,12 +303,17 @@ def test_split_plan():
     lane of the one before is left out; none for ``tail_share`` 1, an odd rest or a short budget."""
     from torch_frontend.lk.capturable import _split_plan
 
-    assert _split_plan(150, 30, 8) == ((8, 19), (12, 8))
+    assert _split_plan(150, 30, 8) == ((8, 19),)  # the second stage only after 512 seats or more
+    assert _split_plan(4096, 30, 8) == ((8, 512), (12, 128))
     assert _split_plan(9600, 30, 8) == ((8, 1200), (12, 300))
     assert _split_plan(9600, 30, 16) == ((8, 600), (12, 150))
-    assert _split_plan(144, 30, 2) == ((8, 72),)  # a smaller share: the first stage only
-    assert _split_plan(24, 30, 8) == ((8, 16), (12, 8))
-    assert _split_plan(16, 30, 8) == ((12, 8),)  # 16 seats would seat every lane
+    assert _split_plan(9600, 30, 2) == ((8, 4800),)  # a smaller share: the first stage only
+    assert _split_plan(9600, 12, 8) == ((8, 1200),)
     assert _split_plan(8, 30, 8) == ()
     assert _split_plan(150, 30, 1) == () and _split_plan(150, 31, 8) == () and _split_plan(150, 8, 8) == ()
-    assert _split_plan(150, 10, 8) == ((8, 19),)
+    with pytest.MonkeyPatch.context() as mp:  # every stage, whatever the seats (the tests' small batches)
+        mp.setattr(lk_capturable, "_STAGE_MIN_SEATS", 0)
+        assert _split_plan(150, 30, 8) == ((8, 19), (12, 8))
+        assert _split_plan(24, 30, 8) == ((8, 16), (12, 8))
+        assert _split_plan(16, 30, 8) == ((12, 8),)  # 16 seats would seat every lane
+        assert _split_plan(144, 30, 2) == ((8, 72),)

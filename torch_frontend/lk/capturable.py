@@ -147,11 +147,16 @@ def _bmm_exact(device) -> bool:
 #: seats for all, the result is the full budget's bit for bit. Every stage starts on an even
 #: iteration and the budget's rest is even: the iterations alternate two test buffers and the
 #: step's sign, so the lanes left behind stay on the parity the level's end reads. Lane-iterations
-#: per level: 1,618 for 150 lanes with the split at 8 alone, 1,420 with both stages (B = 64:
-#: 103,200 -> 87,000).
+#: per level at B = 64 (9,600 lanes): 103,200 with the split at 8 alone, 87,000 with both stages.
+#: A stage after the first is added only where the stage before it has at least
+#: ``_STAGE_MIN_SEATS`` seats: below that a sub-batch's kernels are at the launch floor of a GPU
+#: (an H100 moves a 300-lane window gather in ~1.7 us, less than a graph node's 2.5 us), so fewer
+#: seats save no time there and the stage's ~16 launches per level would only add to it.
 _STAGES = ((8, 1.0, 16), (12, 0.25, 8))
 #: the least ``tail_share`` that keeps the stages after the first
 _LATE_MIN_SHARE = 8
+#: the least seats of the stage before for a stage after the first (lanes; see above)
+_STAGE_MIN_SEATS = 512
 #: the split's first stage (the tail's start), as the docs and tests name it
 _TAIL_FROM = _STAGES[0][0]
 
@@ -165,7 +170,7 @@ def _split_plan(M: int, budget: int, share: int) -> Tuple[Tuple[int, int], ...]:
         return ()
     plan, m = [], M
     for k, (j, factor, least) in enumerate(_STAGES):
-        if j >= budget or (budget - j) % 2 or (k and share < _LATE_MIN_SHARE):
+        if j >= budget or (budget - j) % 2 or (k and (share < _LATE_MIN_SHARE or m < _STAGE_MIN_SEATS)):
             break
         seats = max(least, math.ceil(M * factor / share))
         if seats < m:
