@@ -33,7 +33,7 @@ import torch
 from .._checks import as_image_batch, check_points, check_shape, default_valid
 from ..errors import ConfigError
 from ..pyramid import Pyramid, _build_pyramid_impl
-from .capturable import _capturable_consts, _capturable_tables, _difference_image, _lk_capturable  # noqa: F401
+from .capturable import _capturable_consts, _capturable_tables, _lk_capturable, exact_float32  # noqa: F401
 from .eager import _compiled_step, _lk_eager, _lk_step, _write_back  # noqa: F401
 from .implicit import _implicit_attach, _newton_terms, _patch_offsets, _solve2, _wants_grad  # noqa: F401
 from .options import GRAD_MODES, LKOptions
@@ -161,7 +161,10 @@ def track_lk(
     if not torch.compiler.is_compiling() and has_wrapped_tensor(prev, next, pts, valid, init_pts):
         # torch.func wrappers: a vmap is folded into the call (.transforms)
         return track_transformed((prev, next, pts, valid, init_pts), call)
-    return call(prev, next, pts, valid, init_pts)
+    if torch.compiler.is_compiling() or not isinstance(pts, torch.Tensor):
+        return call(prev, next, pts, valid, init_pts)
+    with exact_float32(pts.device):  # CUDA: TF32 off while it runs (the capturable path's exact window sums)
+        return call(prev, next, pts, valid, init_pts)
 
 
 def _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_iters, eps, min_eig_threshold,

@@ -7,10 +7,12 @@ per iteration (fixed point on 8-bit levels, float32 points, no gradient; 22 with
 34 with float interpolation, whose window difference is the eager path's), ~100 per level for the
 template and the bookkeeping.
 
-* OpenCV's fixed-point sample is exact integer arithmetic, so any formulation gives its values: per
-  level the next image becomes a 4-channel *difference image* (:func:`_difference_image`); one
+* OpenCV's fixed-point sample is exact integer arithmetic, so any formulation gives its values: one
   ``searchsorted`` gives the window's top-left (floor, offset and clamp in one op), one gather the
-  windows, one ``baddbmm`` with OpenCV's weights and a ``floor`` the window difference.
+  ``(wh + 1, ww + 2)`` patch of the next level's grey levels (4 bytes a pixel, once), one grouped
+  ``conv2d`` with OpenCV's four integer weights (plus the template as a second channel) and a
+  ``floor_divide`` the window difference (:func:`_fast_iterations`); nothing image-sized is built
+  per level but the padded level itself.
 * Stopping: the step test in float64 via one ``bmm``; signs alternate between iterations so that
   one ``cdist`` (inf norm) gives ``|delta + prevDelta|``; the tests and the running mask are
   columns of a bool buffer whose ``all`` is the next running mask. A lane that stops does not take
@@ -25,14 +27,16 @@ Convention:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Optional, Tuple
 
 import torch
+import torch.nn.functional as F
 
 from .. import _tuning
 from .._cache import cached
-from ..pyramid import Pyramid
+from ..pyramid import Pyramid, pad_reflect101
 from .options import LKOptions
 from .windows import (
     _OSC,
@@ -53,8 +57,8 @@ def _capturable_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, dev
     ``grid`` ``(2, L)``: boundaries for ``searchsorted(grid, p, right=True)``, which gives, per axis,
     ``idx = floor(p) + win + 1`` for window origins inside ``[-win, size)`` (rows ``-win .. size``,
     the shorter padded with ``+inf``), 0 below and ``size + win + 1`` above: one op for the floor,
-    the offset, the clamp and the integer conversion. ``idx`` is the window's top-left in the
-    padded level's difference image (:func:`_difference_image`). ``inside`` ``(H + wh + 2, W + ww +
+    the offset, the clamp and the integer conversion. ``idx`` addresses the window's patch in the
+    level's patch view (:func:`_fast_iterations`'s ``Jw``). ``inside`` ``(H + wh + 2, W + ww +
     2)`` bool: True at the ``idx`` of inside origins, False at the two margins (outside); the
     iterations gather it straight into their stopping-test buffer."""
     gx = torch.arange(-ww, W + 1, dtype=dtype, device=device)
@@ -71,48 +75,51 @@ def _capturable_tables(H: int, W: int, ww: int, wh: int, dtype: torch.dtype, dev
 @cached(32)
 def _capturable_consts(dtype: torch.dtype, device):
     """OpenCV's bilinear weights as one ``addcmul`` + one product (see :func:`_fixed_weights`):
-    ``T = off + frac * sgn`` ``(2: x/y, m, 4)``, ``iw = round(T[0] T[1])`` = ``(iw00, iw01, iw10,
-    2^14)``, the weights of the difference image's channels; and ``C`` ``(4, 4)`` (``dtype``), the
-    difference image's channels from the 2x2 block's pixels ``(J00, J01, J10, J11)``."""
+    ``T = off + frac * sgn`` ``(2: x/y, m, 4)``, ``R = round(T[0] T[1])`` = ``(iw00, iw01, iw10,
+    2^14)``; ``C`` ``(4, 4)`` (``dtype``): ``R C`` = ``(iw00, iw01, iw10, iw11)`` with OpenCV's
+    ``iw11 = 2^14 - iw00 - iw01 - iw10`` (integers: exact in any order); and ``w1`` ``(1, 2, 2, 2)``
+    (``dtype``), the convolution weights of a lane before its channel 0 is written: channel 1 (the
+    template) ``2^9`` at the kernel's top-left (:func:`_fast_iterations`)."""
     f32 = torch.float32
     off = torch.tensor([[[128.0, 0, 128, 128]], [[128.0, 128, 0, 128]]], dtype=f32, device=device)
     sgn = torch.tensor([[[-128.0, 128, -128, 0]], [[-128.0, -128, 128, 0]]], dtype=f32, device=device)
-    C = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [-1, -1, -1, 1]], dtype=dtype, device=device)
-    return off, sgn, C * 2.0**-9
+    C = torch.tensor([[1.0, 0, 0, -1], [0, 1, 0, -1], [0, 0, 1, -1], [0, 0, 0, 1]], dtype=dtype, device=device)
+    w1 = torch.zeros((1, 2, 2, 2), dtype=dtype, device=device)
+    w1[0, 1, 0, 0] = _DESCALE
+    return off, sgn, C, w1
 
 
-def _difference_image(Jp: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
-    """The padded next level ``(B, 1, Hp, Wp)`` as ``(B, Hp - 1, Wp, 4)`` windows' source: at ``(y, x)``
-    the channels ``(J00 - J11, J01 - J11, J10 - J11, J11) 2^-9`` of the 2x2 block ``J[y:y+2, x:x+2]``
-    (integers times ``0, +-2^-9``, sums of two: exact in any order and in TF32). OpenCV's
-    fixed-point sample ``sum iw_ab J_ab 2^-9`` is then one dot product with ``(iw00, iw01, iw10,
-    2^14)``: exact (integers times ``2^-9`` below ``2^23``), whatever the order of the multiply-adds.
+#: OpenCV's ``CV_DESCALE(., W_BITS1 - 5)`` divisor of the fixed-point sample (grey levels x 2^14
+#: weights -> 1/32 grey levels)
+_DESCALE = 512.0
 
-    The blocks run over the streams' flattened pixels, row pitch ``Wp``: the last column's block
-    wraps into the next row (and the last row's into the next stream); such blocks are read only as
-    the junk column of the pitched windows (zero derivative weight) of outside origins. Returned as
-    a flat ``(B Hp Wp + 1, 4)`` buffer whose last block (read by the last stream's bottom-right
-    margin window only) is zero: every window view stays inside it and every value is finite.
 
-    Written channel by channel from the scaled level (one image-sized float temporary, not the
-    four stacked pixels of a ``matmul`` with ``C``: the step's peak memory sits here at level 0);
-    the values are the same (each channel is exact either way). Under the compiler, which takes no
-    strided ``out=``, or with a derivative: the stacked pixels times ``C``."""
-    Jf = Jp.reshape(-1)
-    Wp = Jp.shape[-1]
-    L = Jf.numel() - Wp - 1  # blocks with all four pixels inside the buffer
-    D = torch.empty((Jf.numel() + 1, 4), dtype=Jf.dtype, device=Jf.device)
-    D[L:].zero_()
-    if torch.compiler.is_compiling() or not _tuning.inplace_ok(Jf):
-        S = torch.stack((Jf[:L], Jf[1:L + 1], Jf[Wp:Wp + L], Jf[Wp + 1:]), -1)  # (L, 4)
-        torch.matmul(S, C, out=D[:L])
-        return D
-    Js = Jf * C[3, 3]  # 2^-9: exact
-    j11 = Js[Wp + 1:]
-    torch.sub(Js.as_strided((L, 2), (1, 1)), j11.unsqueeze(1), out=D[:L, 0:2])  # J00, J01 - J11
-    torch.sub(Js[Wp:Wp + L], j11, out=D[:L, 2])  # J10 - J11
-    D[:L, 3].copy_(j11)
-    return D
+def _exact_float32(device) -> bool:
+    """The fast path's ``mm`` and ``conv2d`` on float32 integers are exact unless CUDA may round their
+    inputs to TF32 (10-bit mantissa: OpenCV's 14-bit weights would lose bits); the tracker's step
+    runs under :func:`exact_float32`."""
+    if torch.device(device).type != "cuda":
+        return True
+    return not torch.backends.cuda.matmul.allow_tf32 and not (torch.backends.cudnn.enabled
+                                                               and torch.backends.cudnn.allow_tf32)
+
+
+@contextlib.contextmanager
+def exact_float32(device):
+    """On CUDA, TF32 off for matmuls and cuDNN convolutions while the block runs (the caller's
+    settings are restored after it): the capturable LK's window sums need full float32 inputs. A
+    no-op elsewhere and where TF32 is already off. Host-side: wrap a compiled or captured step,
+    not a traced region."""
+    if torch.device(device).type != "cuda" or _exact_float32(device):
+        yield
+        return
+    mm, cudnn = torch.backends.cuda.matmul, torch.backends.cudnn
+    old = mm.allow_tf32, cudnn.allow_tf32
+    mm.allow_tf32 = cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        mm.allow_tf32, cudnn.allow_tf32 = old
 
 
 # The fast iterations keep the step ``sd`` in float64 (the step tests' type: no conversion op);
@@ -122,11 +129,6 @@ def _difference_image(Jp: torch.Tensor, C: torch.Tensor) -> torch.Tensor:
 # iff ``y > t + ulp(t) / 2`` (``t``'s last bit is 0: the midpoint rounds to ``t``). Likewise
 # ``p + delta`` computed in float64 and stored as float32 is float32's correctly rounded sum.
 _OSC_TEST = {torch.float32: _OSC[torch.float32] + 2.0**-31, torch.float64: _OSC[torch.float64]}
-
-
-def _bmm_exact(device) -> bool:
-    """The difference-image dot products are exact unless CUDA matmuls may round to TF32."""
-    return torch.device(device).type != "cuda" or not torch.backends.cuda.matmul.allow_tf32
 
 
 #: The fast iterations' split of a full budget (``LKOptions.tail_share``): the lanes run in stages,
@@ -185,7 +187,7 @@ def _tail_lanes(M: int, budget: int, share: int) -> int:
     return plan[0][1] if plan else 0
 
 
-def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0=None):
+def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c, tabs, moved0=None):
     """Iterations ``j0 .. budget - 1`` of the fast path on ``m`` lanes, in place in ``p`` and
     ``tst``, with the sub-batch stages ``plan`` (:func:`_split_plan`, the ones from ``j0`` on): the
     lanes run together up to the next stage, whose seats go to the running lanes first (a stable
@@ -193,7 +195,7 @@ def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, hiv, g, C
     written back. Returns ``(sd, sdp, moved0, lost)``: as :func:`_fast_iterations`, and ``(m,)``
     bool of the lanes still running at a stage's start without a seat (None without a stage)."""
     j1 = plan[0][0] if plan else budget
-    sd, sdp, moved0 = _fast_iterations(j0, j1, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0)
+    sd, sdp, moved0 = _fast_iterations(j0, j1, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c, tabs, moved0)
     if not plan:
         return sd, sdp, moved0, None
     m2 = plan[0][1]
@@ -203,7 +205,7 @@ def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, hiv, g, C
     sub_p, sub_tst = p.index_select(1, rows), tst.index_select(2, rows)
     sub_sd, _, _, sub_lost = _staged_iterations(
         j1, budget, plan[1:], sub_p, sub_tst, sdp.index_select(0, rows), lanes.index_select(0, rows),
-        hiv.index_select(0, rows), g.index_select(0, rows), Cs.index_select(1, rows),
+        xb.index_select(0, rows), wb.index_select(0, rows), g.index_select(0, rows), Cs.index_select(1, rows),
         dinv_c.index_select(0, rows), tabs, moved0)
     # running lanes without a seat stop here (still running: status kept, no stopping step)
     lost = running.index_fill(0, rows, False)
@@ -215,21 +217,38 @@ def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, hiv, g, C
     return sd, sdp, moved0, lost
 
 
-def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs, moved0=None):
+def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c, tabs, moved0=None):
     """Iterations ``j0 .. j1 - 1`` of the fast (8-bit, fixed-point, no gradient) path on ``m`` lanes,
-    in place in ``p (2, m)`` and the test buffers ``tst (2, 4, m)``. ``tabs``: the level's
-    ``(Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp)``. Returns ``(sd, sdp, moved0)``: the
-    last iteration's step (float64, signed as its parity), the one before, and (when ``j0 == 0``)
-    the window test of the first iteration."""
-    Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp = tabs
-    m, n = hiv.shape[0], hiv.shape[1]
+    in place in ``p (2, m)`` and the test buffers ``tst (2, 4, m)``. ``xb (m, 2, wh + 1, ww + 2)``:
+    the convolution's input, channel 0 the window patch (written by each iteration), channel 1 the
+    lanes' ``1/2 - template`` (zero-padded); ``wb (m, 2, 2, 2)``: its weights, channel 0 OpenCV's
+    (written by each iteration), channel 1 ``2^9`` at the top-left. ``tabs``: the level's ``(Jw,
+    grid, inside_tab, w_off, w_sgn, w_C, eps2, osc_cmp)``. Returns ``(sd, sdp, moved0)``: the last
+    iteration's step (float64, signed as its parity), the one before, and (when ``j0 == 0``) the
+    window test of the first iteration.
+
+    The window difference ``floor(sum iw_ab J_ab / 2^9 + 1/2) - template`` is ``floor_divide(conv,
+    2^9)`` of ``conv = sum iw_ab J_ab + 2^9 (1/2 - template)``: integers below ``2^23`` in every
+    partial sum (``sum iw_ab = 2^14``, ``J <= 255``, the template below ``2^13``), so exact in
+    any order of the multiply-adds and in float32 (the values of the difference image's
+    ``baddbmm`` before it, bit for bit). Each iteration writes its patch and weights into the
+    lanes' buffers (``out=``: no concatenation); under the compiler, which takes no strided
+    ``out=``, they are stacked instead."""
+    Jw, grid, inside_tab, w_off, w_sgn, w_C, eps2, osc_cmp = tabs
+    m, _, ph, pw = xb.shape
+    n = (ph - 1) * (pw - 1)
     dtype = p.dtype
+    compiling = torch.compiler.is_compiling()
     sd = None
     for j in range(j0, j1):
         sg = 1.0 - 2.0 * (j % 2)
         t, t1 = tst[j % 2], tst[1 - j % 2]
         idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
-        Wn = Dw[lanes, idx[1], idx[0]]  # (m, wh, ww + 1, 4)
+        if compiling:
+            x = torch.stack((Jw[lanes, idx[1], idx[0]], xb[:, 1]), 1)
+        else:  # the (wh + 1, ww + 2) patches into channel 0
+            torch.ops.aten.index.Tensor_out(Jw, [lanes, idx[1], idx[0]], out=xb[:, 0])
+            x = xb
         # the window test, gathered into its column of the test buffer (a lane outside
         # stops there, as OpenCV's break; its step is finite and never applied)
         torch.ops.aten.index.Tensor_out(inside_tab, [idx[1], idx[0]], out=t[3])
@@ -237,10 +256,15 @@ def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, t
         if f.dtype != torch.float32:
             f = f.float()  # OpenCV's weights are float32 (as _fixed_weights)
         iw = torch.addcmul(w_off, f.unsqueeze(-1), w_sgn)  # (2, m, 4)
-        iw = torch.mul(iw[0], iw[1]).round_()
+        iw = torch.mul(iw[0], iw[1]).round_()  # (iw00, iw01, iw10, 2^14)
         if iw.dtype != dtype:
             iw = iw.to(dtype)
-        diff = torch.baddbmm(hiv, Wn.view(m, n, 4), iw.unsqueeze(-1)).floor_().view(m, 1, n)
+        if compiling:
+            w = torch.stack((torch.mm(iw, w_C).view(m, 2, 2), wb[:, 1]), 1)
+        else:  # (iw00, iw01, iw10, iw11) into channel 0
+            torch.mm(iw, w_C, out=wb[:, 0].view(m, 4))
+            w = wb
+        diff = F.conv2d(x.view(1, 2 * m, ph, pw), w, groups=m).view(m, 1, n).floor_divide_(_DESCALE)
         s = (g * diff).sum(2)  # (m, 2): b / 2^-20, as the eager path's sum
         # (m, 2): sg * delta, computed in dtype and stored as float64 (the tests' type)
         sd = torch.mul((Cs[j % 2] * s.unsqueeze(1)).sum(2), dinv_c,
@@ -297,7 +321,6 @@ def _lk_capturable(
     M = B * N
     dtype, dev = pts.dtype, pts.device
     ww, wh = win
-    n = wh * (ww + 1)  # pitched window
     k = _win_consts(ww, wh, dtype, dev)
     half, zero = k["half"], k["zero"]
     osc_thr = _OSC.get(dtype, 0.01)
@@ -336,24 +359,33 @@ def _lk_capturable(
                 lost = ok.view(B, N).any(1)
                 overflow = lost if overflow is None else overflow | lost
             continue
-        # the difference image's dot products are exact for OpenCV's 8-bit levels only
+        # the window sums are exact for OpenCV's 8-bit levels only
         fast = (fixed and nxt.rounded and dtype in _OSC_TEST and _tuning.inplace_ok(iv, g, lv.Jp, o0)
-                and _bmm_exact(dev))
+                and _exact_float32(dev))
         if fixed and _tuning.inplace_ok(iv, lv.Jp, o0):
             iv = k["c05"] - iv  # 1/2 - template: the rounding's 1/2 and the difference in one op
             iv_init = True
         else:
             iv_init = False
         if fast:
-            # the coarser level's windows' source is dead: drop it before this one exists (peak memory)
-            D = Dw = tabs = None
+            # the coarser level's buffers are dead: dropped before this level's exist (peak memory)
+            Jw = tabs = xb = wb = None
             grid, inside_tab = _capturable_tables(H, W, ww, wh, dtype, dev)
-            w_off, w_sgn, w_C = _capturable_consts(dtype, dev)
-            Hp, Wp = Jpad.shape[-2:]
-            D = _difference_image(Jpad, w_C)
-            # windows (wh, ww + 1, 4) at every top-left (iy, ix), iy <= H + wh + 1, ix <= W + ww + 1
-            Dw = D.as_strided((B, H + wh + 2, W + ww + 2, wh, ww + 1, 4), (Hp * Wp * 4, Wp * 4, 4, Wp * 4, 4, 1))
-            hiv = iv.view(M, n, 1)
+            w_off, w_sgn, w_C, w_1 = _capturable_consts(dtype, dev)
+            # the next level padded by one more column on each side, so that the (wh + 1, ww + 2)
+            # patch of every window origin in [-win - 1, size] (margins included) lies in its own
+            # stream's padded image: ``Jw[b, iy, ix]`` is the patch of the window at ``idx = (ix, iy)``
+            # (not cached on the pyramid: dropped with the level, while the usual padding is kept
+            # for the next frame's template)
+            Jp2 = pad_reflect101(nxt.levels[level].to(dtype), wh + 1, ww + 2)
+            Hp, Wp2 = Jp2.shape[-2:]
+            Jw = Jp2.reshape(-1)[1:].as_strided((B, H + wh + 2, W + ww + 2, wh + 1, ww + 2),
+                                                (Hp * Wp2, Wp2, 1, Wp2, 1))
+            # the convolution's buffers: channel 1 of the input is 1/2 - template (zero-padded: the
+            # weights that read its padding are 0), of the weights 2^9 at the top-left
+            xb = torch.zeros((M, 2, wh + 1, ww + 2), dtype=dtype, device=dev)
+            xb[:, 1, :wh, :ww + 1] = iv.view(M, wh, ww + 1)
+            wb = w_1.expand(M, 2, 2, 2).contiguous()
             dinv_c = dinv.unsqueeze(1)
             osc_cmp = _OSC_TEST[dtype]
         else:
@@ -375,9 +407,10 @@ def _lk_capturable(
             tst[:, 3].fill_(True)
         sdp = None
         if fast:
-            tabs = (Dw, grid, inside_tab, w_off, w_sgn, eps2, osc_cmp)
+            tabs = (Jw, grid, inside_tab, w_off, w_sgn, w_C, eps2, osc_cmp)
             plan = _split_plan(M, budget, opts.tail_share) if budget == opts.max_iters else ()
-            sd, sdp, moved0, lost = _staged_iterations(0, budget, plan, p, tst, sdp, lanes, hiv, g, Cs, dinv_c, tabs)
+            sd, sdp, moved0, lost = _staged_iterations(0, budget, plan, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c,
+                                                       tabs)
             if lost is not None:
                 lost = lost.view(B, N).any(1)
                 overflow = lost if overflow is None else overflow | lost

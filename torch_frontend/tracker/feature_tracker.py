@@ -26,6 +26,7 @@ import torch.utils._pytree as pytree
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
+from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
 from .params import TrackerParams
@@ -526,10 +527,13 @@ class FeatureTracker:
 
     def _run(self, state, img, t, arrived, r, plan, host):
         """The step on checked inputs (the door's outputs) and the host's plan; keeps the mirrors."""
-        if self._compiled is not None:
-            new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
-        else:
-            new, frame = step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage, plan=plan)
+        # CUDA: TF32 off while the step runs (the capturable LK's exact window sums; restored after)
+        with exact_float32(self.device):
+            if self._compiled is not None:
+                new, frame = self._compiled(state, img, t, self.params, r, arrived, plan)
+            else:
+                new, frame = step_impl(state, img, t, self.params, right=r, active=arrived, stage=self._stage,
+                                       plan=plan)
         if host is not None:
             self._remember_clock(new, host)
         if self._restarts is not None:

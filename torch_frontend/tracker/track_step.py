@@ -28,6 +28,7 @@ import torch
 
 from .._autodiff import derivative_wanted, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
+from ..lk import exact_float32
 from .clock import ClockDecision, PublishPlan, count_published, mono_clock
 from .frame import FeatureFrame
 from .params import TrackerParams
@@ -236,7 +237,10 @@ def step(state: TrackerState, images, timestamps, params: TrackerParams, *, righ
         ``(new_state, frame)``.
     """
     img, t, arrived, r = check_inputs(state, params, images, timestamps, right, active)
-    return step_impl(state, img, t, params, right=r, active=arrived, stage=stage)
+    if torch.compiler.is_compiling():
+        return step_impl(state, img, t, params, right=r, active=arrived, stage=stage)
+    with exact_float32(img.device):  # CUDA: TF32 off while the step runs (the LK's exact window sums)
+        return step_impl(state, img, t, params, right=r, active=arrived, stage=stage)
 
 
 def check_inputs(state: TrackerState, params: TrackerParams, images, timestamps, right=None, active=None,
