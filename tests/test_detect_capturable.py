@@ -250,6 +250,28 @@ def test_nms_windows_equal_nms_candidates():
             assert torch.equal(_nms_windows(t), _nms_candidates(t)), (h, w, levels)
 
 
+def test_select_finite_response_same_as_thresholded():
+    """``finite=True`` (NMS on the response itself, no thresholded copy) selects what the
+    thresholded form selects, output for output, overflow included: signed responses with
+    plateaus, masks (also ones whose maximum is negative), quality 0, 0.01 and 1, small budgets."""
+    from torch_frontend.corners.selection_capturable import _select_corners_capturable
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        h, w = int(rng.integers(3, 30)), int(rng.integers(3, 30))
+        r = torch.from_numpy(rng.integers(-6, 8, (3, h, w)).astype(np.float32))
+        if trial % 4 == 0:
+            r = -r.abs()  # no positive response: nothing passes
+        m = torch.from_numpy(rng.random((3, h, w)) > 0.4) if trial % 2 else None
+        mc = torch.tensor([20, 5, 0])
+        bud = GreedyBudget(int(rng.integers(1, h * w + 1)), 8, 2, 4, 2, 2)
+        for q in (0.0, 0.01, 1.0):
+            for md in (0.5, 3.0):
+                a = _select_corners_capturable(r, mc, q, md, m, 20, bud, finite=True)
+                b = _select_corners_capturable(r, mc, q, md, m, 20, bud, finite=False)
+                assert _same(a, b), (trial, q, md)
+
+
 def test_gftt_budget_holds_on_the_worst_measured_frames():
     """The frames behind GFTT_BUDGET's measured maxima: no overflow, the default path's corners;
     a block one candidate short of the measured need trips the flag."""

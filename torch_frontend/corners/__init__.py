@@ -22,6 +22,8 @@ wherever its ``overflow`` is False (``tests/test_detect_capturable.py``).
 
 from __future__ import annotations
 
+import math
+
 from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
@@ -228,8 +230,10 @@ def _good_features_impl(
     # the stacked sums take it in exact integer passes (responses._covariance_sums_integral)
     resp = _harris_impl(img, block_size, k, True) if use_harris else _min_eigen_impl(img, block_size, True)
     resp = resp[:, 0].detach()
+    # a uint8 image's response is finite (integer sums below 2**24; no NaN; Harris: a finite k)
     return CornersResult(*_select_corners_capturable(resp, max_corners, quality_level, min_distance, mask,
-                                                     int(capacity), GFTT_BUDGET if budget is None else budget))
+                                                     int(capacity), GFTT_BUDGET if budget is None else budget,
+                                                     finite=img.dtype == torch.uint8 and math.isfinite(k)))
 
 
 def _gftt_from_response(

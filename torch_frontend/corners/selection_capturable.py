@@ -309,12 +309,13 @@ def _top_keys(bits: torch.Tensor, k: int, ib: int) -> Tuple[torch.Tensor, torch.
     return key.bitwise_and((1 << ib) - 1), key >= (1 << ib)
 
 
-def _nms_windows(t: torch.Tensor) -> torch.Tensor:
+def _nms_windows(t: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
     """:func:`.selection._nms_candidates` of ``t (B, H, W)`` (contiguous; no NaN) with the 3x3
     maximum as one reduction over overlapping windows of the flat buffer (each value read once)
     instead of four pairwise maxima: a maximum is exact and, without NaN, independent of the
     order, so the same values (the same flat-buffer windows: only border pixels, never
-    candidates, see across a row or stream)."""
+    candidates, see across a row or stream). ``above`` (B, H, W) bool: instead of ``t != 0``, the
+    centre must be ``above`` (``t == dilate3x3(t) & above``)."""
     B, H, W = t.shape
     cand = torch.zeros(B, H, W, dtype=torch.bool, device=t.device)
     N = B * H * W
@@ -326,7 +327,7 @@ def _nms_windows(t: torch.Tensor) -> torch.Tensor:
     centre = f[W + 1:N - W - 1]
     c = cand.view(-1)[W + 1:N - W - 1]
     torch.eq(centre, d, out=c)
-    c &= centre != 0
+    c &= (centre != 0) if above is None else above.reshape(-1)[W + 1:N - W - 1]
     cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
     cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
     return cand
@@ -340,8 +341,11 @@ def _select_corners_capturable(
     m: torch.Tensor | None,
     K: int,
     budget: GreedyBudget,
+    finite: bool = False,
 ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`.selection._select_corners` with fixed work (the ``capturable`` path), no input checks.
+    ``finite``: the caller knows ``resp`` holds no NaN (the response of a uint8 image), which
+    lets the NMS read ``resp`` without a thresholded copy (the same candidates).
 
     The candidates of each stream are ranked by one top-k of a unique integer key (response
     bits, then raster index: OpenCV's order and tie order) and the best ``budget.block`` enter
@@ -366,12 +370,23 @@ def _select_corners_capturable(
         max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
     max_val = torch.nan_to_num(max_val, nan=0.0, posinf=0.0, neginf=0.0)  # == where(isfinite, ., 0)
     thr = (max_val.double() * float(quality_level)).to(resp.dtype)
-    t = torch.where(resp > thr[:, None, None], resp, 0.0)
+    above = resp > thr[:, None, None]
     ib = max(1, (HW - 1).bit_length())  # bits of a raster index
     # 0 <= quality_level <= 1: every candidate's response is > 0 (below), so its float32 bits, read
     # as an int32, are positive and ordered as the values
     positive = resp.dtype == torch.float32 and ib <= 31 and 0.0 <= quality_level <= 1.0
-    cand = _nms_windows(t) if positive else _nms_candidates(t)
+    if positive and finite:
+        # NMS on resp itself, no thresholded copy: for a pixel p with resp_p > thr >= 0, t's 3x3
+        # max is t_p iff resp_p >= resp_q for every neighbour q (one with resp_q <= thr has t_q = 0
+        # < resp_p and resp_q < resp_p), i.e. iff resp_p == dilate3x3(resp)_p (no NaN: ``finite``),
+        # and t_p = resp_p != 0; a pixel with resp_p <= thr is no candidate in either form. thr < 0
+        # only where max_val < 0 (below): no pixel of the mask (or the image) passes, and outside a
+        # mask nothing survives ``cand &= m``. So the same candidates.
+        cand, t = _nms_windows(resp, above), resp
+    else:
+        t = torch.where(above, resp, 0.0)
+        cand = _nms_windows(t) if positive else _nms_candidates(t)
+    del above
     if m is not None:
         cand &= m
     cand = cand.view(B, HW)
@@ -389,7 +404,8 @@ def _select_corners_capturable(
         # (>= 2**ib), instead of the int64 minimum: the top-k's candidates and their order are
         # the same; only the filler lanes (cvalid False) may name other pixels, and those are
         # never eligible, scattered to a dump slot or dropped (outputs unchanged).
-        bits = torch.where(cand.view(B, H, W), t, _f32_zero(dev), out=t).view(B, HW).view(torch.int32)
+        bits = torch.where(cand.view(B, H, W), t, _f32_zero(dev), out=None if t is resp else t)
+        bits = bits.view(B, HW).view(torch.int32)
         del t
         idx, cvalid = _top_keys(bits, Cb, ib)
         del bits
