@@ -23,7 +23,6 @@ wherever its ``overflow`` is False (``tests/test_detect_capturable.py``).
 from __future__ import annotations
 
 import math
-
 from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
