@@ -185,6 +185,93 @@ def _flight_frame(k):
     return synthetic_flight(k + 1)[0][k]
 
 
+def test_integral_covariance_sums_equal_the_float_ones():
+    """A uint8 image's stacked sums (exact-integer passes: windowed [1, 2, 1] and box reductions,
+    products written into the padded stack) give the float path's responses bit for bit, for
+    every box size it takes (1..4; 5: the float path), on random, extreme (0 / 255 checkerboards:
+    the largest derivatives and sums) and tiny images."""
+    from torch_frontend.corners.responses import _covariance_sums, _covariance_sums_stacked
+
+    g = torch.Generator().manual_seed(0)
+    imgs = []
+    for h, w in ((2, 2), (3, 3), (4, 7), (2, 9), (9, 2), (17, 23), (48, 64)):
+        imgs.append(torch.randint(0, 256, (2, 1, h, w), dtype=torch.uint8, generator=g))
+        cb = ((torch.arange(h)[:, None] + torch.arange(w)[None]) % 2 * 255).to(torch.uint8)
+        stripes = (torch.arange(w)[None].expand(h, w) % 2 * 255).to(torch.uint8)
+        imgs.append(torch.stack([cb[None], stripes[None]]))
+        imgs.append((torch.rand(2, 1, h, w, generator=g) > 0.5).to(torch.uint8) * 255)
+    for x in imgs:
+        h, w = x.shape[-2:]
+        for block in range(1, 6):
+            if max(block // 2, block - 1 - block // 2) >= min(h, w):
+                continue
+            xf = x.float()
+            assert torch.equal(_min_eigen_impl(x, block, True), _min_eigen_impl(xf, block)), (x.shape, block)
+            assert torch.equal(_harris_impl(x, block, 0.04, True), _harris_impl(xf, block, 0.04)), (x.shape, block)
+            got, ref = _covariance_sums_stacked(x, block), _covariance_sums(xf, block)
+            assert all(torch.equal(u, v) for u, v in zip(got[:3], ref[:3])) and got[3] == ref[3]
+
+
+def test_top_keys_equal_an_int64_topk():
+    """``_top_keys`` (two int32 top-k and a sort of the winners) == the int64 top-k of ``bits *
+    2**ib + raster``, lane for lane, with heavy ties (a few distinct values, +inf's bits, all
+    zero) at every k."""
+    from torch_frontend.corners.selection_capturable import _top_keys
+
+    g = torch.Generator().manual_seed(0)
+    for trial in range(200):
+        B, HW = int(torch.randint(1, 4, (1,), generator=g)), int(torch.randint(1, 300, (1,), generator=g))
+        ib = max(1, (HW - 1).bit_length())
+        nv = int(torch.randint(1, 6, (1,), generator=g))
+        vals = torch.cat((torch.zeros(1, dtype=torch.int32),
+                          torch.randint(1, 0x7F800001, (nv,), generator=g, dtype=torch.int32)))
+        if trial % 3 == 0:
+            vals[1:] = 0x7F800000
+        bits = vals[torch.randint(0, nv + 1, (B, HW), generator=g)]
+        if trial % 5 == 0:
+            bits.zero_()
+        k = int(torch.randint(1, HW + 1, (1,), generator=g))
+        ref = torch.topk(bits.long() * (1 << ib) + torch.arange(HW), k, dim=1)
+        idx, cvalid = _top_keys(bits, k, ib)
+        assert torch.equal(idx, ref.indices) and torch.equal(cvalid, ref.values >= (1 << ib)), trial
+
+
+def test_nms_windows_equal_nms_candidates():
+    """The windowed 3x3 maximum's candidates == the pairwise maxima's, with plateaus, zeros of
+    both signs and negative values."""
+    from torch_frontend.corners.selection import _nms_candidates
+    from torch_frontend.corners.selection_capturable import _nms_windows
+
+    g = torch.Generator().manual_seed(0)
+    for h, w in ((1, 5), (2, 2), (3, 3), (4, 9), (17, 11), (40, 50)):
+        for levels in (2, 5, 1000):
+            t = torch.randint(-2, levels, (3, h, w), generator=g).float()
+            t[torch.rand(t.shape, generator=g) > 0.7] = -0.0
+            assert torch.equal(_nms_windows(t), _nms_candidates(t)), (h, w, levels)
+
+
+def test_select_finite_response_same_as_thresholded():
+    """``finite=True`` (NMS on the response itself, no thresholded copy) selects what the
+    thresholded form selects, output for output, overflow included: signed responses with
+    plateaus, masks (also ones whose maximum is negative), quality 0, 0.01 and 1, small budgets."""
+    from torch_frontend.corners.selection_capturable import _select_corners_capturable
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        h, w = int(rng.integers(3, 30)), int(rng.integers(3, 30))
+        r = torch.from_numpy(rng.integers(-6, 8, (3, h, w)).astype(np.float32))
+        if trial % 4 == 0:
+            r = -r.abs()  # no positive response: nothing passes
+        m = torch.from_numpy(rng.random((3, h, w)) > 0.4) if trial % 2 else None
+        mc = torch.tensor([20, 5, 0])
+        bud = GreedyBudget(int(rng.integers(1, h * w + 1)), 8, 2, 4, 2, 2)
+        for q in (0.0, 0.01, 1.0):
+            for md in (0.5, 3.0):
+                a = _select_corners_capturable(r, mc, q, md, m, 20, bud, finite=True)
+                b = _select_corners_capturable(r, mc, q, md, m, 20, bud, finite=False)
+                assert _same(a, b), (trial, q, md)
+
+
 def test_gftt_budget_holds_on_the_worst_measured_frames():
     """The frames behind GFTT_BUDGET's measured maxima: no overflow, the default path's corners;
     a block one candidate short of the measured need trips the flag."""

@@ -22,6 +22,7 @@ wherever its ``overflow`` is False (``tests/test_detect_capturable.py``).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple, Optional, Tuple, Union
 
 import torch
@@ -224,11 +225,14 @@ def _good_features_impl(
         return CornersResult(*_select_corners(resp, max_corners, quality_level, min_distance, mask, capacity), None)
     if capacity is None:
         raise ValueError("_good_features_impl: capturable=True needs an int capacity (the output size)")
-    x = _as_float(img)  # one pass over the batch (the CPU stream groups are host-side strategy)
-    resp = _harris_impl(x, block_size, k, True) if use_harris else _min_eigen_impl(x, block_size, True)
+    # one pass over the batch (the CPU stream groups are host-side strategy); a uint8 image as it is:
+    # the stacked sums take it in exact integer passes (responses._covariance_sums_integral)
+    resp = _harris_impl(img, block_size, k, True) if use_harris else _min_eigen_impl(img, block_size, True)
     resp = resp[:, 0].detach()
+    # a uint8 image's response is finite (integer sums below 2**24; no NaN; Harris: a finite k)
     return CornersResult(*_select_corners_capturable(resp, max_corners, quality_level, min_distance, mask,
-                                                     int(capacity), GFTT_BUDGET if budget is None else budget))
+                                                     int(capacity), GFTT_BUDGET if budget is None else budget,
+                                                     finite=img.dtype == torch.uint8 and math.isfinite(k)))
 
 
 def _gftt_from_response(

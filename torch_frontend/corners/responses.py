@@ -94,8 +94,115 @@ def _covariance_sums(img: torch.Tensor, block_size: int,
     return sums[0], sums[1], sums[2], scale
 
 
+#: largest box of the exact-integer path (:func:`_covariance_sums_integral`): a Sobel-3 derivative of
+#: 8-bit grey levels is an integer of magnitude <= 4 * 255 = 1020, a product <= 1020² = 1,040,400,
+#: and a box of ``b²`` products <= b² x 1,040,400, below 2**24 (every integer exact in float32) for
+#: b <= 4 (16,646,400 < 16,777,216)
+_INTEGRAL_BLOCK_MAX = 4
+
+
+def _integral_ok(img: torch.Tensor, block_size: int) -> bool:
+    """True when :func:`_covariance_sums_integral` applies: a uint8 image (no derivative), a box of
+    at most :data:`_INTEGRAL_BLOCK_MAX`, eager (not under the compiler) and not in
+    ``_tuning.reference_forms``."""
+    return (img.dtype == torch.uint8 and 1 <= block_size <= _INTEGRAL_BLOCK_MAX
+            and _tuning.inplace_ok() and not torch.compiler.is_compiling())
+
+
+def _windows(x: torch.Tensor, dims: Tuple[int, ...], size: Tuple[int, ...], taps: Tuple[Tuple[int, int], ...],
+             dtype: torch.dtype | None = None) -> torch.Tensor:
+    """Sum over overlapping windows of contiguous ``x``, as one reduction (each element read once):
+    the result's dim ``dims[i]`` has size ``size[i]``, and every window dim ``(n, step)`` of ``taps``
+    adds ``n`` taps ``step`` elements apart (in ``x``'s flat storage). Two window dims with the same
+    step give the taps ``0, step, step, 2 step``: the ``[1, 2, 1]`` smoothing of a Sobel-3."""
+    shape = list(x.shape)
+    for d, n in zip(dims, size):
+        shape[d] = n
+    stride = list(x.stride())
+    view = x.as_strided(shape + [n for n, _ in taps], stride + [st for _, st in taps])
+    return view.sum(tuple(range(len(shape), len(shape) + len(taps))), dtype=dtype)
+
+
+def _reflect_borders(pp: torch.Tensor, lo: int, hi: int) -> None:
+    """Fill the ``lo`` / ``hi`` border rows and columns of ``pp (..., lo + H + hi, lo + W + hi)`` in
+    place from its interior as ``F.pad(..., mode="reflect")`` (reflect-101) does: rows first, then
+    columns over every row (the corners: reflected twice, as ``F.pad``). A pair of border lines
+    ``lo - i`` and ``lo + n - 1 + i`` with their sources ``lo + i`` and ``lo + n - 1 - i`` is one
+    strided copy where both exist (one kernel instead of two)."""
+    for dim in (-2, -1):
+        n = pp.shape[dim] - lo - hi
+        for i in range(1, max(lo, hi) + 1):
+            top, bot = lo - i, lo + n - 1 + i
+            if i <= lo and i <= hi and n - 1 - 2 * i > 0:
+                dst = _every(pp, dim, top, bot - top)
+                src = _every(pp, dim, lo + i, n - 1 - 2 * i)
+                dst.copy_(src)
+                continue
+            if i <= lo:
+                pp.narrow(dim, top, 1).copy_(pp.narrow(dim, lo + i, 1))
+            if i <= hi:
+                pp.narrow(dim, bot, 1).copy_(pp.narrow(dim, lo + n - 1 - i, 1))
+
+
+def _every(x: torch.Tensor, dim: int, start: int, step: int) -> torch.Tensor:
+    """Lines ``start`` and ``start + step`` of ``x`` along ``dim`` (a strided view of the two)."""
+    idx = [slice(None)] * x.dim()
+    idx[dim] = slice(start, start + step + 1, step)
+    return x[tuple(idx)]
+
+
+def _covariance_sums_integral(img: torch.Tensor, block_size: int) -> torch.Tensor:
+    """:func:`_covariance_sums_stacked`'s products and box sums of a uint8 image
+    (:func:`_integral_ok`), ``(B, 3, H, W)`` float32, in fewer passes over memory.
+
+    Every value here is an integer of magnitude below 2**24 (:data:`_INTEGRAL_BLOCK_MAX`): the
+    grey levels, their [1, 2, 1] smoothings (<= 1020), the Sobel derivatives (<= 1020 in
+    magnitude), the products and every partial box sum. Float32 adds and products of such
+    integers are exact, so any order of the same sums gives the same values as
+    :func:`_covariance_sums_stacked`'s order, bit for bit (one exception, without effect: a sum
+    of ``dx * dy`` products that is zero may be +0.0 here where the tap-by-tap order gives -0.0;
+    the responses use ``Sxy`` only squared, ``Sxy * Sxy``, whose value is +0.0 for both). So:
+
+    * the reflect-101 border is padded on the uint8 image (1 byte a pixel), and each Sobel
+      derivative is a [1, 2, 1] smoothing (one reduction over overlapping windows of the padded
+      uint8 image, summed in float32) then one difference: 4 passes instead of a float copy, a
+      float pad and 6 slice sums;
+    * the products are written into the interior of the padded stack, whose reflect-101 border
+      (the box sum's) is then filled by strided copies of a few lines (no padded copy of the stack);
+    * the box sum is one reduction over overlapping ``block x block`` windows instead of
+      ``2 (block - 1)`` adds of image-sized planes.
+    """
+    B, _, H, W = img.shape
+    lo = block_size // 2
+    hi = block_size - 1 - lo
+    xp = F.pad(img, (1, 1, 1, 1), mode="reflect")  # uint8 (B, 1, H + 2, W + 2)
+    Wp = W + 2
+    # vertical [1, 2, 1] (rows r, r+1, r+1, r+2) -> (B, 1, H, W + 2); horizontal -> (B, 1, H + 2, W)
+    sv = _windows(xp, (2,), (H,), ((2, Wp), (2, Wp)), torch.float32)
+    sh = _windows(xp, (3,), (W,), ((2, 1), (2, 1)), torch.float32)
+    del xp
+    dx = sv[..., 2:] - sv[..., :-2]  # (B, 1, H, W): [1, 2, 1]^T x [-1, 0, 1]
+    del sv
+    dy = sh[..., 2:, :] - sh[..., :-2, :]
+    del sh
+    Hq, Wq = H + lo + hi, W + lo + hi
+    pp = dx.new_empty((B, 3, Hq, Wq))
+    inner = pp[:, :, lo:lo + H, lo:lo + W]
+    torch.mul(dx, dx, out=inner[:, 0:1])
+    torch.mul(dx, dy, out=inner[:, 1:2])
+    torch.mul(dy, dy, out=inner[:, 2:3])
+    del dx, dy
+    if block_size == 1:
+        return pp
+    _reflect_borders(pp, lo, hi)
+    return _windows(pp, (2, 3), (H, W), ((block_size, Wq), (block_size, 1)))
+
+
 def _covariance_sums_stacked(img: torch.Tensor, block_size: int) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
     """:func:`_covariance_sums` with the three products in one tensor (see there).
+
+    ``img`` float, or uint8: :func:`_covariance_sums_integral` where :func:`_integral_ok` (the same
+    values), else converted by :func:`_as_float` first.
 
     Peak memory (the capturable step's largest moment, at detection): every image-sized buffer is
     dropped as soon as the next one exists, the products are written into the stacked tensor
@@ -103,6 +210,11 @@ def _covariance_sums_stacked(img: torch.Tensor, block_size: int) -> Tuple[torch.
     derivative or under the compiler, which takes no strided ``out=``), and the box sums start
     with an add of the first two taps instead of a copy of the first: the same additions in the
     same order, so the same values, in ~5 image-sized planes instead of ~12."""
+    if not img.is_floating_point():
+        if _integral_ok(img, block_size):
+            prod = _covariance_sums_integral(img, block_size)
+            return prod[:, 0], prod[:, 1], prod[:, 2], 1.0 / (4.0 * block_size * 255.0)
+        img = _as_float(img)
     H, W = img.shape[-2:]
     lo = block_size // 2
     hi = block_size - 1 - lo

@@ -105,6 +105,24 @@ def _i64_min(device: torch.device) -> torch.Tensor:
     return torch.tensor(_I64_MIN, device=device)
 
 
+@cached(64)
+def _iota32(n: int, device: torch.device) -> torch.Tensor:
+    """``arange(n)`` int32 (cached constant)."""
+    return torch.arange(n, dtype=torch.int32, device=device)
+
+
+@cached(16)
+def _i32_minus_one(device: torch.device) -> torch.Tensor:
+    """``-1`` as a 0-dim int32 tensor on ``device`` (cached constant)."""
+    return torch.tensor(-1, dtype=torch.int32, device=device)
+
+
+@cached(16)
+def _f32_zero(device: torch.device) -> torch.Tensor:
+    """``0.0`` as a 0-dim float32 tensor on ``device`` (cached constant, as :func:`_i64_min`)."""
+    return torch.zeros((), dtype=torch.float32, device=device)
+
+
 def _distance_threshold(d2_max: int) -> Tuple[torch.dtype, float]:
     """``(dtype, t)`` such that for integer points, ``cdist(p, p) <= t`` in ``dtype`` iff ``d² <=
     d2_max``: t is the midpoint of ``sqrt(d2_max)`` and ``sqrt(d2_max + 1)``, which lie many ulps
@@ -261,6 +279,60 @@ def _greedy_capturable(xy: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor,
     return accepted[:, :C], undecided[:, :C], more
 
 
+def _top_keys(bits: torch.Tensor, k: int, ib: int) -> Tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` largest keys ``bits * 2**ib + raster`` of every row of ``bits (B, HW)`` int32 >= 0
+    (``HW <= 2**ib``, ``ib <= 31``), in descending order: ``(raster (B, k) int64, bits > 0)``,
+    i.e. ``topk(bits.long() * 2**ib + arange(HW), k)`` (unique keys: a unique answer), without an
+    int64 plane: two int32 top-k over the image (4-byte keys: half the passes over half the
+    bytes of an int64 top-k) and one sort of the ``k`` winners.
+
+    1. ``topk(bits, k)`` (ties in any order) finds ``v``, the k-th largest bits, and every element
+       above it (``n_gt < k`` of them: all are among the k);
+    2. the rest of the answer is the ``k - n_gt`` raster-last elements of the tie class ``bits ==
+       v``: a top-k of their raster indices (-1 elsewhere; the class has at least ``k - n_gt``
+       members, the ones step 1 found), in descending order, the j-th filling the j-th slot that
+       step 1 did not fill with an element above ``v``;
+    3. the k chosen keys (distinct pixels, so distinct keys) sorted descending.
+    """
+    B, HW = bits.shape
+    dev = bits.device
+    v1, i1 = torch.topk(bits, k, dim=1, sorted=False)
+    vk = v1.amin(1, keepdim=True)  # (B, 1): the k-th largest
+    tie = torch.where(bits == vk, _iota32(HW, dev), _i32_minus_one(dev))
+    r2 = torch.topk(tie, k, dim=1).values  # raster indices of the tie class, descending (then -1)
+    del tie
+    gt = v1 > vk
+    slot = torch.cumsum(~gt, 1).sub_(1).clamp_min_(0)  # j-th slot not above v -> j-th tie
+    raster = torch.where(gt, i1, r2.gather(1, slot))
+    key = torch.add(raster, torch.where(gt, v1, vk), alpha=1 << ib)  # int64, exact (< 2**62)
+    key = torch.sort(key, dim=1, descending=True).values
+    return key.bitwise_and((1 << ib) - 1), key >= (1 << ib)
+
+
+def _nms_windows(t: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`.selection._nms_candidates` of ``t (B, H, W)`` (contiguous; no NaN) with the 3x3
+    maximum as one reduction over overlapping windows of the flat buffer (each value read once)
+    instead of four pairwise maxima: a maximum is exact and, without NaN, independent of the
+    order, so the same values (the same flat-buffer windows: only border pixels, never
+    candidates, see across a row or stream). ``above`` (B, H, W) bool: instead of ``t != 0``, the
+    centre must be ``above`` (``t == dilate3x3(t) & above``)."""
+    B, H, W = t.shape
+    cand = torch.zeros(B, H, W, dtype=torch.bool, device=t.device)
+    N = B * H * W
+    if H < 3 or W < 3:
+        return cand
+    f = t.reshape(-1)
+    # d[k]: 3x3 max centred on k + W + 1
+    d = f.as_strided((N - 2 * W - 2, 3, 3), (1, W, 1)).amax((1, 2))
+    centre = f[W + 1:N - W - 1]
+    c = cand.view(-1)[W + 1:N - W - 1]
+    torch.eq(centre, d, out=c)
+    c &= (centre != 0) if above is None else above.reshape(-1)[W + 1:N - W - 1]
+    cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
+    cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
+    return cand
+
+
 def _select_corners_capturable(
     resp: torch.Tensor,
     mc: torch.Tensor,
@@ -269,8 +341,11 @@ def _select_corners_capturable(
     m: torch.Tensor | None,
     K: int,
     budget: GreedyBudget,
+    finite: bool = False,
 ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`.selection._select_corners` with fixed work (the ``capturable`` path), no input checks.
+    ``finite``: the caller knows ``resp`` holds no NaN (the response of a uint8 image), which
+    lets the NMS read ``resp`` without a thresholded copy (the same candidates).
 
     The candidates of each stream are ranked by one top-k of a unique integer key (response
     bits, then raster index: OpenCV's order and tie order) and the best ``budget.block`` enter
@@ -295,20 +370,51 @@ def _select_corners_capturable(
         max_val = torch.where(m, resp, float("-inf")).flatten(1).amax(1)
     max_val = torch.nan_to_num(max_val, nan=0.0, posinf=0.0, neginf=0.0)  # == where(isfinite, ., 0)
     thr = (max_val.double() * float(quality_level)).to(resp.dtype)
-    t = torch.where(resp > thr[:, None, None], resp, 0.0)
-    cand = _nms_candidates(t)
-    del t  # image-sized: dropped before the int64 keys exist (the step's peak memory)
+    above = resp > thr[:, None, None]
+    ib = max(1, (HW - 1).bit_length())  # bits of a raster index
+    # 0 <= quality_level <= 1: every candidate's response is > 0 (below), so its float32 bits, read
+    # as an int32, are positive and ordered as the values
+    positive = resp.dtype == torch.float32 and ib <= 31 and 0.0 <= quality_level <= 1.0
+    if positive and finite:
+        # NMS on resp itself, no thresholded copy: for a pixel p with resp_p > thr >= 0, t's 3x3
+        # max is t_p iff resp_p >= resp_q for every neighbour q (one with resp_q <= thr has t_q = 0
+        # < resp_p and resp_q < resp_p), i.e. iff resp_p == dilate3x3(resp)_p (no NaN: ``finite``),
+        # and t_p = resp_p != 0; a pixel with resp_p <= thr is no candidate in either form. thr < 0
+        # only where max_val < 0 (below): no pixel of the mask (or the image) passes, and outside a
+        # mask nothing survives ``cand &= m``. So the same candidates.
+        cand, t = _nms_windows(resp, above), resp
+    else:
+        t = torch.where(above, resp, 0.0)
+        cand = _nms_windows(t) if positive else _nms_candidates(t)
+    del above
     if m is not None:
         cand &= m
     cand = cand.view(B, HW)
     n_cand = cand.sum(1)
 
-    ib = max(1, (HW - 1).bit_length())  # bits of a raster index
-    if resp.dtype == torch.float32 and ib <= 31:
+    if positive:
+        # Candidates are > 0: a candidate has resp > thr. With 0 <= q <= 1, thr >= 0 unless
+        # max_val < 0 (max_val: NaN, +-inf -> 0, so finite), and then thr = q max_val >= max_val
+        # (rounding is monotone and max_val is a float32) >= every response that can be a
+        # candidate (all of them, or with a mask the masked ones, the only candidates kept): none.
+        # So the key of the branch below is, on a candidate, ``(bits << ib) + raster`` (its
+        # sign flip is a no-op on positive bits), built here in two passes (the bits of t, which
+        # is resp there, zero elsewhere; then one int64 add, exact: < 2**(31 + ib) <= 2**62)
+        # instead of seven. A non-candidate gets its raster index, below every candidate's key
+        # (>= 2**ib), instead of the int64 minimum: the top-k's candidates and their order are
+        # the same; only the filler lanes (cvalid False) may name other pixels, and those are
+        # never eligible, scattered to a dump slot or dropped (outputs unchanged).
+        bits = torch.where(cand.view(B, H, W), t, _f32_zero(dev), out=None if t is resp else t)
+        bits = bits.view(B, HW).view(torch.int32)
+        del t
+        idx, cvalid = _top_keys(bits, Cb, ib)
+        del bits
+    elif resp.dtype == torch.float32 and ib <= 31:
         # unique int64 key, larger = earlier in OpenCV's order: float32 bits made order-preserving
         # as signed ints (negative values: flip the magnitude bits), then the raster index (ties:
         # later raster position first)
         # (in place on the one int64 copy: two int64 planes at a time, the step's peak memory)
+        del t  # image-sized: dropped before the int64 keys exist (the step's peak memory)
         bits = resp.reshape(B, HW).view(torch.int32).to(torch.int64)
         neg = bits >> 31
         bits ^= neg.bitwise_and_(0x7FFFFFFF)
@@ -319,6 +425,7 @@ def _select_corners_capturable(
         top = torch.topk(key, Cb, dim=1)
         idx, cvalid = top.indices, top.values != _I64_MIN
     else:
+        del t
         # general dtype: a stable descending sort of the reversed raster order (ties: later first)
         vals = torch.where(cand, resp.reshape(B, HW), float("-inf")).flip(1)
         srt = torch.sort(vals, dim=1, descending=True, stable=True)
