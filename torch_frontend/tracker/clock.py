@@ -124,6 +124,11 @@ class HostClock:
     def step(self, t: np.ndarray, arrived: np.ndarray, params: TrackerParams):
         """:func:`mono_clock` then :func:`count_published` for ``t (B,)`` float64 and ``arrived (B,)``
         bool. Returns ``(clock after the step, publish (B,) bool)``."""
+        return self.decide(t, arrived, params)[:2]
+
+    def decide(self, t: np.ndarray, arrived: np.ndarray, params: TrackerParams):
+        """:meth:`step`, and the step's ``tracked (B,)`` bool (the device's ``ClockDecision.tracked``):
+        ``(clock after the step, publish, tracked)``."""
         freq = float(params.freq)
         flag0, last0 = self.first_image_flag, self.last_image_time
         first = flag0 & arrived
@@ -143,7 +148,7 @@ class HostClock:
         reset = publish & (np.abs(rate - freq) < params.freq_reset_tolerance * freq)
         pub_count = np.where(reset, 0, pub_count) + publish  # the reset, then count_published's += 1
         clock = HostClock(flag, np.where(reset, t, first_image_time), last_image_time, pub_count)
-        return clock, publish
+        return clock, publish, tracked
 
 
 def lane_sizes(batch: int) -> Tuple[int, ...]:
@@ -160,27 +165,32 @@ class PublishPlan(NamedTuple):
     captured once per plan). ``lanes``: 0, no stream publishes (track only: no rejectWithF, setMask,
     addPoints or updateID); ``batch``, every stream runs the publish stages under masks; in between,
     the publishing streams (and ``lanes - n`` non-publishing ones as padding) are gathered into a
-    sub-batch of ``lanes`` streams for those stages and written back."""
+    sub-batch of ``lanes`` streams for those stages and written back. ``every_tracked``: the host
+    knows that every stream is tracked (the steady state: no first image, gap or inactive stream),
+    so the step keeps this frame's pyramid as it is instead of selecting it per stream (the select
+    reads and writes every level of both pyramids: ~13 MB per EuRoC stream per step)."""
 
     lanes: int
     batch: int
+    every_tracked: bool = False
 
     @property
     def name(self) -> str:
-        """``track``, ``all`` or ``sub<lanes>`` (labels, the compiled variants' names)."""
-        if self.lanes == 0:
-            return "track"
-        return "all" if self.lanes >= self.batch else f"sub{self.lanes}"
+        """``track``, ``all`` or ``sub<lanes>``, ``_every`` appended with ``every_tracked`` (labels,
+        the compiled variants' names)."""
+        base = "track" if self.lanes == 0 else "all" if self.lanes >= self.batch else f"sub{self.lanes}"
+        return base + "_every" if self.every_tracked else base
 
 
-def publish_plan(n_publish: int, batch: int) -> PublishPlan:
+def publish_plan(n_publish: int, batch: int, every_tracked: bool = False) -> PublishPlan:
     """The plan for ``n_publish`` publishing streams out of ``batch``: the smallest of
-    :func:`lane_sizes` that holds them (0 lanes when none publishes)."""
+    :func:`lane_sizes` that holds them (0 lanes when none publishes); ``every_tracked`` as
+    :class:`PublishPlan`'s (True only where every stream is tracked in this step)."""
     if not 0 <= n_publish <= batch:
         raise ValueError(f"n_publish: expected 0..{batch}, got {n_publish}")
     if n_publish == 0:
-        return PublishPlan(0, batch)
-    return PublishPlan(next(n for n in lane_sizes(batch) if n >= n_publish), batch)
+        return PublishPlan(0, batch, bool(every_tracked))
+    return PublishPlan(next(n for n in lane_sizes(batch) if n >= n_publish), batch, bool(every_tracked))
 
 
 #: consecutive restarting steps of one stream after which :class:`RestartWatch` warns (once per

@@ -483,9 +483,11 @@ class FeatureTracker:
 
     def _plan(self, state: TrackerState, t_host: torch.Tensor, active_host: torch.Tensor) -> Tuple[PublishPlan, HostClock]:
         """The step's variant from the host mirror of the clock (``t_host``, ``active_host`` CPU
-        tensors; the clock's rules in numpy before the upload: no sync) and the mirror after the step."""
-        host, publish = self._host_clock(state).step(_host_array(t_host), _host_array(active_host), self.params)
-        return publish_plan(int(np.count_nonzero(publish)), self.B), host
+        tensors; the clock's rules in numpy before the upload: no sync) and the mirror after the step.
+        A step that tracks every stream says so in its plan (``every_tracked``)."""
+        host, publish, tracked = self._host_clock(state).decide(_host_array(t_host), _host_array(active_host),
+                                                                self.params)
+        return publish_plan(int(np.count_nonzero(publish)), self.B, bool(tracked.all())), host
 
     # ------------------------------------------------------------------ the step
     def step(self, state, images, timestamps, right=None, active=None, sizes=None):

@@ -305,13 +305,14 @@ def _detect(table, img_eq, detect: Tensor, params: TrackerParams, stage):
 
 
 def _commit(state: TrackerState, table, next_id: Tensor, t: Tensor, pyr, tracked: Tensor, capturable: bool,
-            **changes) -> TrackerState:
+            every_tracked: bool = False, **changes) -> TrackerState:
     """The new state: streams in ``tracked`` take this step's table, id counter, time and pyramid;
-    the others keep theirs exactly."""
+    the others keep theirs exactly. ``every_tracked`` (the host's plan: ``tracked`` is all True):
+    this step's pyramid as it is (the per-stream select would give the same values)."""
     return dataclasses.replace(
         state, features=table.committed().where_streams(tracked, state.features),
         next_id=torch.where(tracked, next_id, state.next_id), prev_time=torch.where(tracked, t, state.prev_time),
-        prev_pyramid=select_pyramid(tracked, pyr, state.prev_pyramid, capturable),
+        prev_pyramid=pyr if every_tracked else select_pyramid(tracked, pyr, state.prev_pyramid, capturable),
         has_image=state.has_image | tracked,
         **changes)
 
@@ -382,7 +383,7 @@ def _mono(state, img, t, params, arrived, stage, plan: Optional[PublishPlan] = N
         table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
     clock, sent = count_published(clock, publish)
     new = _commit(state, table, next_id, t, pyr, tracked, params.capturable, clock=clock,
-                  has_prediction=has_prediction)
+                  has_prediction=has_prediction, every_tracked=plan is not None and plan.every_tracked)
     f = new.features
     # VINS-Mono publishes features tracked at least once after detection (spec §3.11)
     valid = f.valid & (f.track_cnt > 1) & publish.unsqueeze(-1)
