@@ -74,7 +74,8 @@ def _both(P, Q, pts, valid, init, opts, **kw):
     tensor on the capturable path always, on the default one when some budget is below
     ``max_iters`` (else None: exact)."""
     e = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, capturable=False, **kw))
-    s = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, capturable=True, **kw))
+    with lk.exact_float32(pts.device):  # CUDA: TF32 off, as the tracker's step (the convolution form)
+        s = lk._track_lk_impl(P, Q, pts, valid, init, dataclasses.replace(opts, capturable=True, **kw))
     assert isinstance(e, lk.LKResult) and isinstance(s, lk.LKResult)
     assert (e.overflow is None) == (not dataclasses.replace(opts, **kw).inexact)
     assert s.overflow is not None and s.overflow.shape == (pts.shape[0],)
@@ -318,3 +319,26 @@ def test_split_plan():
         assert _split_plan(24, 30, 8) == ((8, 16), (12, 8))
         assert _split_plan(16, 30, 8) == ((12, 8),)  # 16 seats would seat every lane
         assert _split_plan(144, 30, 2) == ((8, 72),)
+
+
+def test_exact_float32_scopes_tf32_off_and_restores_it():
+    """``lk.exact_float32``: on CUDA, matmul and cuDNN TF32 are off inside (the capturable LK's
+    convolution form needs full float32 inputs: ``_exact_float32``) and the caller's settings come
+    back after, also after an error; elsewhere a no-op. The flags are plain settings, so this runs
+    without a GPU."""
+    mm, cudnn = torch.backends.cuda.matmul, torch.backends.cudnn
+    old = mm.allow_tf32, cudnn.allow_tf32
+    try:
+        mm.allow_tf32, cudnn.allow_tf32 = False, True
+        assert not lk_capturable._exact_float32("cuda") and lk_capturable._exact_float32("cpu")
+        with lk.exact_float32(torch.device("cuda")):
+            assert (mm.allow_tf32, cudnn.allow_tf32) == (False, False) and lk_capturable._exact_float32("cuda")
+        assert (mm.allow_tf32, cudnn.allow_tf32) == (False, True)
+        with pytest.raises(RuntimeError, match="inside"):
+            with lk.exact_float32(torch.device("cuda")):
+                raise RuntimeError("inside")
+        assert (mm.allow_tf32, cudnn.allow_tf32) == (False, True)
+        with lk.exact_float32(torch.device("cpu")):
+            assert cudnn.allow_tf32  # not touched for another device
+    finally:
+        mm.allow_tf32, cudnn.allow_tf32 = old

@@ -297,7 +297,8 @@ def _fast_iterations(j0: int, j1: int, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c
     for j in range(j0, j1):
         sg = 1.0 - 2.0 * (j % 2)
         t, t1 = tst[j % 2], tst[1 - j % 2]
-        idx = torch.searchsorted(grid, p, right=True)  # (2, m) int64
+        # (2, m) int64; the compiler may lay ``p`` out strided (searchsorted then copies it with a warning)
+        idx = torch.searchsorted(grid, p.contiguous() if compiling else p, right=True)
         if compiling:
             x = torch.stack((Jw[lanes, idx[1], idx[0]], xb[:, 1]), 1)
         else:  # the (wh + 1, ww + 2) patches into channel 0

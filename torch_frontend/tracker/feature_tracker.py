@@ -114,6 +114,10 @@ class _CompiledStep:
             try:
                 fn = self.variants.get(plan)
                 if fn is None:
+                    # the package's per-size constants (``_cache.cached``) are built by one eager step
+                    # first (pure: its result is dropped): a cache miss inside a fullgraph trace cannot
+                    # be built outside the graph, and the compiled step failed on a cold cache
+                    _pure_step(state, img, t, params, right, active, plan)
                     fn = self.variants[plan] = self.compiler(_variant_step(plan))
                 if self.cuda_graphs:
                     torch.compiler.cudagraph_mark_step_begin()
@@ -389,12 +393,14 @@ class FeatureTracker:
         replayed, not issued one by one); ``compile_kwargs`` (``mode``, ``backend``, ``dynamic``,
         ...) override those defaults. Mono compiles one step per variant (track only, every stream,
         a sub-batch of 1, 2, 4, ... publishing streams: ``clock.publish_plan``), each when a step
-        first needs it. The graph is built on the first call of each variant: on the CPU
-        backend (inductor) about 4-5 minutes per variant on a loaded 2-core machine (three
-        variants for a mono run: the first frame, track only, publish). Inductor fuses and
-        reorders float reductions, so a compiled step's values may differ from the eager step's
-        in the last bits (measured: identical for the first three EuRoC sample frames, then
-        drifting); the eager capturable step is the one pinned bit for bit to the CPU path;
+        first needs it (after one eager step of that variant, which fills the package's caches: a
+        cache miss cannot be built inside the whole-step trace). The graph is built on the first
+        call of each variant: on the CPU backend (inductor), 277, 220 and 329 s for the three
+        variants of a mono EuRoC run (the first frame, track only with every stream tracked,
+        publish) on this 2-core machine, 2026-12-05. Inductor fuses and reorders float
+        reductions, so a compiled step's values may differ from the eager step's in the last bits
+        (measured: identical for the first three EuRoC sample frames, then drifting); the eager
+        capturable step is the one pinned bit for bit to the CPU path;
         with ``fallback`` (default) a step that fails to compile warns once and runs eager from then
         on, so a tracker never stops because of the compiler. The outputs of a CUDA-graph replay
         live in the graph's memory pool: the step clones the new state and frame out of it, so
