@@ -240,14 +240,13 @@ def test_nms_windows_equal_nms_candidates():
     """The windowed 3x3 maximum's candidates == the pairwise maxima's, with plateaus, zeros of
     both signs and negative values."""
     from torch_frontend.corners.selection import _nms_candidates
-    from torch_frontend.corners.selection_capturable import _nms_windows
 
     g = torch.Generator().manual_seed(0)
     for h, w in ((1, 5), (2, 2), (3, 3), (4, 9), (17, 11), (40, 50)):
         for levels in (2, 5, 1000):
             t = torch.randint(-2, levels, (3, h, w), generator=g).float()
             t[torch.rand(t.shape, generator=g) > 0.7] = -0.0
-            assert torch.equal(_nms_windows(t), _nms_candidates(t)), (h, w, levels)
+            assert torch.equal(_nms_candidates(t, windowed=True), _nms_candidates(t)), (h, w, levels)
 
 
 def test_select_finite_response_same_as_thresholded():

@@ -22,7 +22,7 @@ and checks each chunk and round (a few syncs per call).
 from __future__ import annotations
 
 import math
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch
 
@@ -156,19 +156,41 @@ def _resolve_rounds(conf_t: torch.Tensor, und: torch.Tensor) -> torch.Tensor:
         state[:, 1] = und
 
 
-def _nms_candidates(t: torch.Tensor) -> torch.Tensor:
+def _nms_candidates(t: torch.Tensor, above: Optional[torch.Tensor] = None, windowed: bool = False) -> torch.Tensor:
     """``t != 0 & t == dilate3x3(t)`` of (B, H, W), False on the 1-pixel image border.
 
     The 3x3 max is taken on the flat (B*H*W,) buffer with 1-D shifts (contiguous, vectorised
     maxima; ~10x faster on CPU than 2-D slices or ``max_pool2d``). A shift by one mixes the end
     of a row with the start of the next, and a shift by W mixes streams, but only in windows
     centred on border pixels, which are never candidates.
+
+    ``windowed`` (the capturable path's; ``t`` contiguous, no NaN): the same maximum as one
+    reduction over overlapping 3x3 windows of the same flat buffer (each value read once instead
+    of four pairwise maxima; a maximum is exact and, without NaN, independent of the order, so
+    the same candidates). ``above`` (B, H, W) bool: instead of ``t != 0``, the centre must be
+    ``above``.
     """
     B, H, W = t.shape
     cand = torch.zeros(B, H, W, dtype=torch.bool, device=t.device)
     N = B * H * W
     if H < 3 or W < 3:
         return cand
+    f = t.reshape(-1)
+    if windowed:  # d[k]: 3x3 max centred on k + W + 1
+        d = f.as_strided((N - 2 * W - 2, 3, 3), (1, W, 1)).amax((1, 2))
+    else:
+        r = torch.maximum(f[:-2], f[1:-1])  # r[j]: row max centred on j + 1
+        r = torch.maximum(r, f[2:], out=r)
+        d = torch.maximum(r[:-2 * W], r[W:-W])  # d[k]: 3x3 max centred on k + W + 1
+        d = torch.maximum(d, r[2 * W:], out=d)
+    centre = f[W + 1:N - W - 1]
+    c = cand.view(-1)[W + 1:N - W - 1]
+    torch.eq(centre, d, out=c)
+    c &= (centre != 0) if above is None else above.reshape(-1)[W + 1:N - W - 1]
+    # fill_ on views, not ``cand[...] = False`` (a Python scalar is uploaded as a tensor first)
+    cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
+    cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
+    return cand
     f = t.reshape(-1)
     r = torch.maximum(f[:-2], f[1:-1])  # r[j]: row max centred on j + 1
     r = torch.maximum(r, f[2:], out=r)

@@ -309,30 +309,6 @@ def _top_keys(bits: torch.Tensor, k: int, ib: int) -> Tuple[torch.Tensor, torch.
     return key.bitwise_and((1 << ib) - 1), key >= (1 << ib)
 
 
-def _nms_windows(t: torch.Tensor, above: torch.Tensor | None = None) -> torch.Tensor:
-    """:func:`.selection._nms_candidates` of ``t (B, H, W)`` (contiguous; no NaN) with the 3x3
-    maximum as one reduction over overlapping windows of the flat buffer (each value read once)
-    instead of four pairwise maxima: a maximum is exact and, without NaN, independent of the
-    order, so the same values (the same flat-buffer windows: only border pixels, never
-    candidates, see across a row or stream). ``above`` (B, H, W) bool: instead of ``t != 0``, the
-    centre must be ``above`` (``t == dilate3x3(t) & above``)."""
-    B, H, W = t.shape
-    cand = torch.zeros(B, H, W, dtype=torch.bool, device=t.device)
-    N = B * H * W
-    if H < 3 or W < 3:
-        return cand
-    f = t.reshape(-1)
-    # d[k]: 3x3 max centred on k + W + 1
-    d = f.as_strided((N - 2 * W - 2, 3, 3), (1, W, 1)).amax((1, 2))
-    centre = f[W + 1:N - W - 1]
-    c = cand.view(-1)[W + 1:N - W - 1]
-    torch.eq(centre, d, out=c)
-    c &= (centre != 0) if above is None else above.reshape(-1)[W + 1:N - W - 1]
-    cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
-    cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
-    return cand
-
-
 def _select_corners_capturable(
     resp: torch.Tensor,
     mc: torch.Tensor,
@@ -382,10 +358,10 @@ def _select_corners_capturable(
         # and t_p = resp_p != 0; a pixel with resp_p <= thr is no candidate in either form. thr < 0
         # only where max_val < 0 (below): no pixel of the mask (or the image) passes, and outside a
         # mask nothing survives ``cand &= m``. So the same candidates.
-        cand, t = _nms_windows(resp, above), resp
+        cand, t = _nms_candidates(resp, above, windowed=True), resp
     else:
         t = torch.where(above, resp, 0.0)
-        cand = _nms_windows(t) if positive else _nms_candidates(t)
+        cand = _nms_candidates(t, windowed=positive)
     del above
     if m is not None:
         cand &= m

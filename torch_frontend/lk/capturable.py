@@ -3,9 +3,9 @@
 Every lane of every stream in one pass, a fixed number of masked iterations per level
 (``LKOptions.iter_budget``, default ``max_iters``), no host sync once the per-size constants are
 cached, no data-dependent shape, and a kernel count independent of B and of the data: 21 aten ops
-per iteration (fixed point on 8-bit levels, float32 points, no gradient; 22 with float64 points;
-34 with float interpolation, whose window difference is the eager path's), ~100 per level for the
-template and the bookkeeping.
+per iteration (fixed point on 8-bit levels, float32 points, no gradient; 23 with float64 points;
+34 with float interpolation, whose window difference is the eager path's), ~75 per level for the
+template (:func:`_template_conv` on the fast path) and the bookkeeping.
 
 * OpenCV's fixed-point sample is exact integer arithmetic, so any formulation gives its values: one
   ``searchsorted`` gives the window's top-left (floor, offset and clamp in one op), one gather the
@@ -233,12 +233,6 @@ def _split_plan(M: int, budget: int, share: int) -> Tuple[Tuple[int, int], ...]:
             plan.append((j, seats))
             m = seats
     return tuple(plan)
-
-
-def _tail_lanes(M: int, budget: int, share: int) -> int:
-    """Seats of the first sub-batch of :func:`_split_plan` (0: no split)."""
-    plan = _split_plan(M, budget, share)
-    return plan[0][1] if plan else 0
 
 
 def _staged_iterations(j0: int, budget: int, plan, p, tst, sdp, lanes, xb, wb, g, Cs, dinv_c, tabs, moved0=None):

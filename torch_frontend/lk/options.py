@@ -59,10 +59,11 @@ class LKOptions:
             ``overflow`` field of ``_track_lk_impl``'s :class:`LKResult` reports per stream.
         tail_share: the capturable path's split of a full budget (``iter_budget`` None): after
             ``lk.capturable._TAIL_FROM`` (8) iterations on every lane, the rest run on a sub-batch of
-            ``1/tail_share`` of the lanes (at least 16), the running ones first: the work of the
-            masked no-ops of lanes that have stopped (on real frames all but a few) is not done. A
-            lane still running without a seat stops there and raises ``overflow`` (results differ
-            from OpenCV's only there). Default 8; 1: every lane runs every iteration.
+            ``1/tail_share`` of the lanes (at least 16), the running ones first, and from 12
+            iterations on a quarter of those where that pays (``lk.capturable._split_plan``): the
+            work of the masked no-ops of lanes that have stopped (on real frames all but a few) is
+            not done. A lane still running without a seat stops there and raises ``overflow``
+            (results differ from OpenCV's only there). Default 8; 1: every lane runs every iteration.
         grad_mode: ``"implicit"`` (default: implicit-function gradient of the level-0 solution)
             or ``"unrolled"`` (autograd through every iteration); the forward values are the same
             bit for bit.
