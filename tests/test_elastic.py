@@ -117,6 +117,22 @@ def test_torchrun_finished_stream_not_redone(track_job, tmp_path):
 
 
 @pytest.mark.slow
+def test_torchrun_killed_after_a_stream_ended_before_its_checkpoint(track_job, tmp_path):
+    """Rank 0 killed at step 9, right after its first input (8 frames) ended and before the
+    checkpoint that says so: the input's output is not committed yet (its staging folder, with the
+    track images of the frames before the last checkpoint, stays), so the restarted rank redoes
+    it from step 8 and ``out`` is the uninterrupted job's. (A commit before that checkpoint left
+    an input the resume redid without its earlier track images: the CI failure of stop 38.)"""
+    args, ref = track_job
+    out = tmp_path / "out"
+    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="frame:9", restarts=1)
+    assert res.returncode == 0, res.stderr
+    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 8" in res.stderr
+    assert_same_job_outputs(ref, out)
+    assert no_staging_left(out)
+
+
+@pytest.mark.slow
 def test_torchrun_without_restarts_fails_and_resume_continues(track_job, tmp_path):
     """Without --max-restarts the killed rank fails the job (as before); its checkpoints stay in
     the job's staging area, and the same command with --resume continues from them."""

@@ -320,6 +320,38 @@ def test_atomic_writes_leave_no_partial_file(tmp_path):
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("stop", ["interrupt", "job_aborted", "error"])
+def test_run_recorder_written_set_waits_for_commit_and_a_checkpointed_stop_keeps_it(tmp_path, stop):
+    """``write(commit=False)`` fills the staging folder only and ``commit()`` swaps it in; a
+    checkpointed recorder (``keep_on_interrupt``) stopped by an interrupt or by
+    ``distributed.JobAborted`` (another rank failed) leaves its staging folder for the resume,
+    with the track images in it; any other error removes it."""
+    from torch_frontend.distributed import JobAborted
+    from torch_frontend.outputs import RunRecorder
+
+    out = tmp_path / "out"
+    with RunRecorder(out, ["s0"], write_tracks=False) as rec:
+        staged = rec.stage_path
+        paths = rec.write({"frames": 0}, plots=False, commit=False)
+        assert not (out / "features.csv").exists() and (staged / "features.csv").is_file()
+        assert rec.commit() == paths
+    assert (out / "features.csv").is_file() and not staged.exists()
+    with pytest.raises(RuntimeError, match="nothing written to commit"):
+        rec.commit()
+
+    out2 = tmp_path / "out2"
+    exc = {"interrupt": KeyboardInterrupt(), "job_aborted": JobAborted(), "error": RuntimeError("boom")}[stop]
+    with pytest.raises(type(exc)):
+        with RunRecorder(out2, ["s0"], write_tracks=True) as rec:
+            staged = rec.stage_path
+            (staged / "tracks" / "stream0").mkdir()
+            (staged / "tracks" / "stream0" / "0000000000000000001.png").write_bytes(b"png")
+            rec.keep_on_interrupt = True  # a checkpoint covers it
+            raise exc
+    assert staged.is_dir() == (stop != "error")
+    assert list(out2.iterdir()) == []
+
+
 def test_replace_dir_swaps_folders(tmp_path):
     from torch_frontend.outputs import replace_dir
 

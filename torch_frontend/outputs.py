@@ -196,6 +196,7 @@ class RunRecorder:
         self.track_images = 0
         self._size: tuple | None = None  # (H, W) of the frames, pixels (track_paths.png's axes)
         self._tmp_tracks: Path | None = None
+        self._pending: List[str] | None = None  # the names written by write(commit=False)
         self.journal = bool(journal)
         #: leave the staging folder on SIGINT/SIGTERM (set once a checkpoint is in it)
         self.keep_on_interrupt = False
@@ -230,17 +231,31 @@ class RunRecorder:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        if exc_type is not None:
-            if self.keep_on_interrupt and issubclass(exc_type, KeyboardInterrupt):
-                # SIGINT / SIGTERM (a preemption) after a checkpoint: the staging folder stays,
-                # for --resume (the next run without it removes it as a stale temporary)
-                self._stage = None
-                self._bags = []
-                self._tmp_tracks = None
+        if exc_type is None:
+            if self._pending is not None:  # written with commit=False and never committed
+                self.commit()
+        elif self._resumable(exc):
+            # SIGINT / SIGTERM (a preemption), or a sharded job stopped by another rank, after a
+            # checkpoint: the staging folder stays, for --resume or the job's restart (the next
+            # run without it removes it as a stale temporary)
+            self._stage = None
+            self._bags = []
+            self._tmp_tracks = None
+            if isinstance(exc, KeyboardInterrupt):
                 exc.resumable = True  # the CLI's message: rerun with --resume
-            else:
-                self.abort()
+        else:
+            self.abort()
         return False
+
+    def _resumable(self, exc: BaseException) -> bool:
+        """Whether ``exc`` stops a checkpointed run that goes on later (its staging folder stays):
+        an interrupt, or an exception whose class says ``keeps_checkpoints = True``:
+        ``distributed.JobAborted`` (another rank of the job failed; a restart or ``--resume``
+        continues from this rank's checkpoint, ``pipelines.elastic``; a class attribute, as this
+        layer does not import ``distributed``)."""
+        if not self.keep_on_interrupt:
+            return False
+        return isinstance(exc, KeyboardInterrupt) or bool(getattr(type(exc), "keeps_checkpoints", False))
 
     def abort(self) -> None:
         """Remove the temporary folder (``out`` is not touched)."""
@@ -251,6 +266,7 @@ class RunRecorder:
             self._stage.abort()
         self._stage = None
         self._tmp_tracks = None
+        self._pending = None
 
     @property
     def stage_path(self) -> Path | None:
@@ -431,22 +447,47 @@ class RunRecorder:
             s.update(extra)
         return s
 
-    def write(self, summary: Dict[str, Any], plots: bool = True) -> List[Path]:
+    def write(self, summary: Dict[str, Any], plots: bool = True, commit: bool = True) -> List[Path]:
         """Write every output and swap the set in for ``out`` (module docstring); returns the
-        paths under ``out``. Any failure leaves ``out`` as it was and removes the temporaries."""
-        if self._stage is None:
+        paths under ``out``. Any failure leaves ``out`` as it was and removes the temporaries
+        (those of a checkpointed run stay on an interrupt: :meth:`__exit__`).
+
+        ``commit=False`` writes the whole set into the staging folder and stops there:
+        :meth:`commit` swaps it in later. A sharded run commits a finished input only after the
+        checkpoint that records it finished: before it, a resumed run redoes the input from the
+        previous checkpoint and needs the track images of the frames before it, which are in the
+        staging folder only."""
+        if self._stage is None or self._pending is not None:
             raise RuntimeError(f"{self.out}: the outputs of this RunRecorder were written or aborted already")
         try:
             for w in self._bags:
                 w.close()
             names = self._write_set(self._stage.path, summary, plots) + list(self.bag_names)
+            self._bags = []
+            self._pending = names
+            if commit:
+                self.commit()
+        except BaseException as exc:
+            if self._resumable(exc):
+                self.__exit__(type(exc), exc, None)
+            else:
+                self.abort()
+            raise
+        return [self.out / n for n in names]
+
+    def commit(self) -> List[Path]:
+        """Swap the set written by ``write(..., commit=False)`` in for ``out``; returns the paths
+        under ``out``."""
+        if self._stage is None or self._pending is None:
+            raise RuntimeError(f"{self.out}: nothing written to commit (write(commit=False) first)")
+        try:
             self._stage.commit()
         except BaseException:
             self.abort()
             raise
+        names, self._pending = self._pending, None
         self._stage = None
         self._tmp_tracks = None
-        self._bags = []
         return [self.out / n for n in names]
 
     def _write_set(self, d: Path, summary: Dict[str, Any], plots: bool) -> List[str]:

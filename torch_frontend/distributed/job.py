@@ -65,7 +65,10 @@ class RankFailure(DataError):
 
 class JobAborted(Exception):
     """This rank stopped because another one failed (``quiet``: the CLI prints nothing, rank 0 and
-    the failed rank say what happened)."""
+    the failed rank say what happened). The job goes on later (a restart, ``--resume``): what a
+    rank checkpointed stays (``keeps_checkpoints``, read by ``outputs.RunRecorder``)."""
+
+    keeps_checkpoints = True
 
     def __init__(self, message: str = "stopped: another rank failed", quiet: bool = False):
         super().__init__(message)

@@ -14,7 +14,9 @@ Convention:
     ``<out>.rank<r>`` (``.<out name>.rank<r>.tf<pid>-<random>.tmp``; never swapped in: it is the
     rank's private part of the job's staging area). It holds the rank's checkpoints
     (``pipelines.checkpoint``: ``.checkpoint/``) and the staging folders of the rank's unfinished
-    per-input outputs (``stream<b>/``, renamed to ``out/stream<b>`` when the input is complete).
+    per-input outputs (``stream<b>/``, renamed to ``out/stream<b>`` when the input is complete and
+    the checkpoint that records it finished is saved: a rank stopped before that checkpoint redoes
+    the input from the previous one, and the track images of the frames before it are only here).
     The checkpoints say which of the rank's inputs are finished (with their results for the merged
     summary), so a restarted rank redoes none of them and continues the others from the last
     checkpoint. A restarted rank finds its folder as ``--resume`` finds a killed run's

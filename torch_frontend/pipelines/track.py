@@ -377,6 +377,10 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         before = dict(p["times"])
     tracker_seconds = before["tracker_seconds"]
     ended: List[int] = []  # streams finished since the last checkpoint
+    checkpointed = stage is not None and stage.writer.enabled
+    pending: List[Any] = []  # recorders of finished streams, written, to commit after the next checkpoint
+    if resumed is not None:
+        _commit_finished(stage, outs, results)
     t0 = time.perf_counter()
 
     def times_now() -> Dict[str, float]:
@@ -415,9 +419,16 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         summary = rec.summary(seconds, skipped, extra=info)
         summary["per_stream"][0].update(stream_config_entry(cfgs[b]))
         copy_imu(rec, cfgs, sources, seqs, opt, streams=[b])
-        rec.write(summary)
+        # with checkpoints, committed after the one that records it finished (RunRecorder.write)
+        rec.write(summary, commit=not checkpointed)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
         ended.append(b)
+        if checkpointed:
+            pending.append(rec)
+
+    def commit_pending() -> None:
+        while pending:
+            pending.pop(0).commit()
 
     def recorder(b: int):
         if results[b] is not None:  # finished before the checkpoint this run continues from
@@ -461,16 +472,31 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                     # that a resumed run does not redo it
                     if stage.writer.due(steps) or (ended and stage.writer.enabled):
                         checkpoint(recs)
+                        commit_pending()
         for b in range(B):
             if results[b] is None:
                 finish(b, recs[b])
-        if stage is not None and stage.writer.enabled and ended:
+        if checkpointed and ended:
             checkpoint(recs)
+        commit_pending()
     now = times_now()
     return {"streams": results, "steps": steps, "seconds": round(now["seconds"], 6),
             "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers),
             "decode_seconds": round(now["decode_seconds"], 6), "input_wait_seconds": round(now["input_wait_seconds"], 6),
             "device": str(dev)}
+
+
+def _commit_finished(stage, outs: Sequence[Any], results: Sequence[Any]) -> None:
+    """A resumed rank's inputs that its checkpoint records finished but whose output set was not
+    swapped in yet (the rank stopped between that checkpoint and the commit): the set is complete
+    in the rank's staging folder (written before the checkpoint): swap it in now."""
+    from .._atomic import StagedFolder
+    from ..outputs import LEGACY_OUTPUTS
+
+    for b, r in enumerate(results):
+        staged = stage.path / Path(outs[b]).name
+        if r is not None and staged.is_dir():
+            StagedFolder(outs[b], "track", LEGACY_OUTPUTS, adopt=staged).commit()
 
 
 def _input_entry(source: Source, seq) -> Dict[str, Any]:
