@@ -133,6 +133,20 @@ def test_torchrun_killed_after_a_stream_ended_before_its_checkpoint(track_job, t
 
 
 @pytest.mark.slow
+def test_torchrun_killed_after_a_stream_ended_before_its_commit(track_job, tmp_path):
+    """Rank 0 killed right after the checkpoint that records its first input finished (step 9),
+    before that input's output is swapped in: the restarted rank swaps the staged set in and
+    does not redo the input."""
+    args, ref = track_job
+    out = tmp_path / "out"
+    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="ended:9", restarts=1)
+    assert res.returncode == 0, res.stderr
+    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 9 (1 of its inputs finished)" in res.stderr
+    assert_same_job_outputs(ref, out)
+    assert no_staging_left(out)
+
+
+@pytest.mark.slow
 def test_torchrun_without_restarts_fails_and_resume_continues(track_job, tmp_path):
     """Without --max-restarts the killed rank fails the job (as before); its checkpoints stay in
     the job's staging area, and the same command with --resume continues from them."""

@@ -311,15 +311,49 @@ def test_compile_captures_each_variant_once():
     frames = _frames()[:5]
     ref = FeatureTracker(cfg, capturable=True)
     tr = FeatureTracker(cfg, capturable=True)
-    tr.compile(backend="eager")
+    tr.compile(backend="eager", regions=False)  # the whole step, one graph per variant (CUDA's default)
     torch._dynamo.reset()
     for t, img in frames:
         x = torch.from_numpy(img)[None, None]
         _same(ref.track(x, [t]), tr.track(x, [t]), f"t={t}")
-    assert tr._compiled.failed is None
+    assert tr._compiled.failed is None and tr._compiled.regions is None
     fns = tr._compiled.variants
     # the first frame (no stream tracked: the plain track-only variant), then every stream tracked:
     # track-only and publishing steps that keep this frame's pyramid as it is (PublishPlan.every_tracked)
     assert {p.name for p in fns} == {"track", "track_every", "all_every"}
     codes = {p.name: fn._torchdynamo_orig_callable.__code__ for p, fn in fns.items()}
     assert codes["track_every"] is not codes["all_every"] and codes["track_every"].co_name == "_step_track_every"
+
+
+@pytest.mark.slow  # dynamo traces each part once (~20 s in all on this CPU)
+def test_compile_regions_compile_each_part_once_for_every_variant():
+    """``compile(regions=True)`` (the CPU's default): the mono step's parts (track, publish,
+    finish) are compiled each once and shared by the step variants; the outputs are the eager
+    step's, and later steps of every variant compile nothing new."""
+    cfg = _crop_cfg()
+    frames = _frames()[:8]
+    graphs = []
+
+    def counting(gm, example_inputs):  # dynamo's graphs, run as traced
+        graphs.append(gm)
+        return gm.forward
+
+    ref = FeatureTracker(cfg, capturable=True)
+    tr = FeatureTracker(cfg, capturable=True)
+    tr.compile(backend=counting)
+    torch._dynamo.reset()
+    for t, img in frames[:5]:
+        x = torch.from_numpy(img)[None, None]
+        _same(ref.track(x, [t]), tr.track(x, [t]), f"t={t}")
+    assert tr._compiled.failed is None
+    parts = tr._compiled.regions.parts
+    assert set(parts) == {"track", "publish", "finish_unnumbered", "finish_unnumbered_every", "finish_numbered_every"}
+    assert {p.name for p in tr._compiled.variants} == {"track", "track_every", "all_every"}
+    # one graph per part: the first frame's track part is every later one's (a primed pyramid of
+    # the first image stands for the missing previous one, lk.track.prime_next_pyramid)
+    assert len(graphs) == len(parts)
+    for t, img in frames[5:]:
+        x = torch.from_numpy(img)[None, None]
+        _same(ref.track(x, [t]), tr.track(x, [t]), f"t={t}")
+    assert len(graphs) == len(parts)
+    _same(ref.state, tr.state, "state")

@@ -66,6 +66,17 @@ def _level_cap(prev: Pyramid, nxt: Pyramid, max_level: int, win: Tuple[int, int]
     return top
 
 
+def prime_next_pyramid(pyr: Pyramid, opts: LKOptions, dtype: torch.dtype) -> Pyramid:
+    """``pyr`` with the padded levels an LK call with ``opts`` caches on its ``next`` pyramid (the
+    following call's ``prev``: the template is read from them) made now, as the call would make
+    them: a pyramid that no LK has seen then holds what one that has seen one holds (a compiled
+    step guards on that cache: one graph for both)."""
+    ww, wh = opts.win_size
+    for level in range(_level_cap(pyr, pyr, opts.max_level, opts.win_size) + 1):
+        pyr.padded(level, wh + 1, ww + 1, dtype)
+    return pyr
+
+
 def _track_lk_impl(
     prev: Pyramid,
     next: Pyramid,

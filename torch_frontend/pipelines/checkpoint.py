@@ -26,7 +26,9 @@ Convention:
     Test hook: the environment variable ``TORCH_FRONTEND_TEST_KILL_AT`` = ``frame:<k>`` makes the
     run SIGKILL itself once frame (step) ``k`` is recorded, ``checkpoint:<n>`` in the middle of
     writing its ``n``-th checkpoint (chunk written, ``state.pt`` half written), 1-based;
-    ``term:<k>`` sends it SIGTERM once frame ``k`` is recorded.
+    ``term:<k>`` sends it SIGTERM once frame ``k`` is recorded; ``ended:<k>`` (a sharded ``track``)
+    SIGKILLs it after the checkpoint of step ``k`` that records an input finished, before that
+    input's output is swapped in.
 """
 
 from __future__ import annotations

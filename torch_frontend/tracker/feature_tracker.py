@@ -78,10 +78,39 @@ class _StageSpan:
         return False
 
 
-def _pure_step(state: TrackerState, img, t, params: TrackerParams, right, active, plan: Optional[PublishPlan] = None):
+def _pure_step(state: TrackerState, img, t, params: TrackerParams, right, active, plan: Optional[PublishPlan] = None,
+               regions: Optional[Callable] = None):
     """The compiled unit: :func:`step_impl` on validated inputs, no stage hooks (their timers
     synchronise)."""
-    return step_impl(state, img, t, params, right=right, active=active, plan=plan)
+    return step_impl(state, img, t, params, right=right, active=active, plan=plan, regions=regions)
+
+
+def _own_code(fn: Callable, name: str) -> Callable:
+    """``fn`` called through a function with a code object of its own, named ``name``: dynamo keeps
+    compiled graphs (and its recompile limit) per code object, so each gets its own."""
+    def own(*args):
+        return fn(*args)
+
+    own.__code__ = own.__code__.replace(co_name=name, co_qualname=name)
+    own.__name__ = own.__qualname__ = name
+    return own
+
+
+class _Regions:
+    """The mono step's parts, compiled separately (``step_impl``'s ``regions``): each name (a part
+    and its static arguments: ``track``, ``publish``, ``publish_<lanes>``, ``finish_...``) is
+    compiled on its first call and reused by every step variant that calls it, so a run compiles
+    the LK once, not once per variant. ``compiler(fn)`` compiles one part."""
+
+    def __init__(self, compiler: Callable[[Callable], Callable]):
+        self.compiler = compiler
+        self.parts: Dict[str, Callable] = {}
+
+    def __call__(self, name: str, fn: Callable, *args):
+        part = self.parts.get(name)
+        if part is None:
+            part = self.parts[name] = self.compiler(_own_code(fn, "_part_" + name))
+        return part(*args)
 
 
 def _variant_step(plan: Optional[PublishPlan]) -> Callable:
@@ -92,10 +121,7 @@ def _variant_step(plan: Optional[PublishPlan]) -> Callable:
     def variant(state, img, t, params, right, active):
         return _pure_step(state, img, t, params, right, active, plan)
 
-    name = "_step_" + ("full" if plan is None else plan.name)
-    variant.__code__ = variant.__code__.replace(co_name=name, co_qualname=name)
-    variant.__name__ = variant.__qualname__ = name
-    return variant
+    return _own_code(variant, "_step_" + ("full" if plan is None else plan.name))
 
 
 class _CompiledStep:
@@ -104,10 +130,18 @@ class _CompiledStep:
     replay overwrites them). ``compiler(fn)`` compiles one variant (``torch.compile`` with the
     tracker's options)."""
 
-    def __init__(self, compiler: Callable[[Callable], Callable], cuda_graphs: bool, fallback: bool):
+    def __init__(self, compiler: Callable[[Callable], Callable], cuda_graphs: bool, fallback: bool,
+                 regions: bool = False):
         self.compiler, self.cuda_graphs, self.fallback = compiler, cuda_graphs, fallback
         self.variants: Dict[Optional[PublishPlan], Callable] = {}
+        #: the compiled parts shared by every variant (``compile(regions=True)``), else None
+        self.regions: Optional[_Regions] = _Regions(compiler) if regions else None
         self.failed: Optional[BaseException] = None
+
+    def _variant(self, plan: Optional[PublishPlan]) -> Callable:
+        if self.regions is None:
+            return self.compiler(_variant_step(plan))
+        return functools.partial(_pure_step, plan=plan, regions=self.regions)  # eager glue between parts
 
     def __call__(self, state, img, t, params, right, active, plan: Optional[PublishPlan] = None):
         if self.failed is None:
@@ -118,7 +152,7 @@ class _CompiledStep:
                     # first (pure: its result is dropped): a cache miss inside a fullgraph trace cannot
                     # be built outside the graph, and the compiled step failed on a cold cache
                     _pure_step(state, img, t, params, right, active, plan)
-                    fn = self.variants[plan] = self.compiler(_variant_step(plan))
+                    fn = self.variants[plan] = self._variant(plan)
                 if self.cuda_graphs:
                     torch.compiler.cudagraph_mark_step_begin()
                 out = fn(state, img, t, params, right, active)
@@ -385,26 +419,37 @@ class FeatureTracker:
             m.enable_stage_times(enabled)
         self._stage.times = {} if enabled else None
 
-    def compile(self, enable: bool = True, *, fallback: bool = True, **compile_kwargs) -> None:
+    def compile(self, enable: bool = True, *, fallback: bool = True, regions: Optional[bool] = None,
+                **compile_kwargs) -> None:
         """Compile the step with ``torch.compile`` (``enable=False``: back to eager).
 
-        With ``capturable=True`` the whole step after the input checks is compiled as one graph
-        (``fullgraph=True``; on CUDA ``mode="reduce-overhead"``, i.e. CUDA graphs: launches are
+        With ``capturable=True`` the step after the input checks is compiled with
+        ``fullgraph=True`` (on CUDA ``mode="reduce-overhead"``, i.e. CUDA graphs: launches are
         replayed, not issued one by one); ``compile_kwargs`` (``mode``, ``backend``, ``dynamic``,
-        ...) override those defaults. Mono compiles one step per variant (track only, every stream,
-        a sub-batch of 1, 2, 4, ... publishing streams: ``clock.publish_plan``), each when a step
-        first needs it (after one eager step of that variant, which fills the package's caches: a
-        cache miss cannot be built inside the whole-step trace). The graph is built on the first
-        call of each variant: on the CPU backend (inductor), 277, 220 and 329 s for the three
-        variants of a mono EuRoC run (the first frame, track only with every stream tracked,
-        publish) on this 2-core machine, 2026-12-05. Inductor fuses and reorders float
-        reductions, so a compiled step's values may differ from the eager step's in the last bits
-        (measured: identical for the first three EuRoC sample frames, then drifting); the eager
-        capturable step is the one pinned bit for bit to the CPU path;
-        with ``fallback`` (default) a step that fails to compile warns once and runs eager from then
-        on, so a tracker never stops because of the compiler. The outputs of a CUDA-graph replay
-        live in the graph's memory pool: the step clones the new state and frame out of it, so
-        they stay valid after the next replay.
+        ...) override those defaults. Mono runs one step variant per publish plan (track only, every
+        stream, a sub-batch of 1, 2, 4, ... publishing streams: ``clock.publish_plan``), each first
+        run as one eager step (which fills the package's caches: a cache miss cannot be built
+        inside a trace). ``regions`` says what is compiled:
+
+        * ``False`` (the default on CUDA): each variant's whole step, one graph (one CUDA graph per
+          variant), compiled when a step first needs it.
+        * ``True`` (the default on the CPU; mono only, fusion compiles its one step whole): the
+          step's three parts (clock + CLAHE + pyramid + LK, the publish stages per sub-batch size,
+          undistortion + ids + the new state), each compiled once and shared by every variant that
+          runs it, with the few host-side choices between them in eager Python. A mono run compiles
+          the LK once instead of once per variant: on the CPU backend (inductor, a cold cache,
+          this 2-core machine, 2026-12-05) a mono EuRoC run's first three steps took 213 + 3 + 56 s,
+          where the three whole-step variants took 276 + 237 + 349 s
+          (4.5 min in all instead of 14.4). On CUDA this makes three
+          CUDA graphs per step: not yet run on a GPU.
+
+        Inductor fuses and reorders float reductions, so a compiled step's values may differ from
+        the eager step's in the last bits (measured: identical for the first three EuRoC sample
+        frames, then drifting); the eager capturable step is the one pinned bit for bit to the CPU
+        path. With ``fallback`` (default) a step that fails to compile warns once and runs eager
+        from then on, so a tracker never stops because of the compiler. The outputs of a
+        CUDA-graph replay live in the graph's memory pool: the step clones the new state and frame
+        out of it, so they stay valid after the next replay.
 
         With ``capturable=False`` (the CPU-tuned path, whose early exits need the host) only the LK
         iteration kernel is compiled, for this tracker only (its ``params.lk_compile_step``:
@@ -412,7 +457,7 @@ class FeatureTracker:
         tracker compiles each group's step."""
         if self._groups is not None:
             for m in self._members:
-                m.compile(enable, fallback=fallback, **compile_kwargs)
+                m.compile(enable, fallback=fallback, regions=regions, **compile_kwargs)
             return
         if not self.capturable:
             self.params = dataclasses.replace(self.params, lk_compile_step=(dict(compile_kwargs) or True) if enable
@@ -425,9 +470,13 @@ class FeatureTracker:
         if self.device.type == "cuda":
             opts["mode"] = "reduce-overhead"
         opts.update(compile_kwargs)
+        if regions is None:  # one CUDA graph per step on a GPU; on the CPU, the compile time
+            regions = self.device.type == "cpu"
         prepare_compile()  # the package's assume_constant_result marks, applied before tracing
-        # one compiled callable per step variant (PublishPlan), each compiled and captured on first use
-        self._compiled = _CompiledStep(functools.partial(torch.compile, **opts), self.device.type == "cuda", fallback)
+        # one compiled callable per step variant (PublishPlan), each compiled and captured on first
+        # use; or (mono, regions) the step's parts, each compiled once and shared by the variants
+        self._compiled = _CompiledStep(functools.partial(torch.compile, **opts), self.device.type == "cuda", fallback,
+                                       regions=bool(regions) and self.mode == "mono")
 
     # ------------------------------------------------------------------ state
     def initial_state(self) -> Union[TrackerState, GroupedState]:

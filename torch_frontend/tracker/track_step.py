@@ -22,13 +22,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import torch
 
 from .._autodiff import derivative_wanted, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
 from ..lk import exact_float32
+from ..lk.track import prime_next_pyramid
 from .clock import ClockDecision, PublishPlan, count_published, mono_clock
 from .frame import FeatureFrame
 from .params import TrackerParams
@@ -262,7 +263,8 @@ def check_inputs(state: TrackerState, params: TrackerParams, images, timestamps,
 
 
 def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams, *, right: Optional[Tensor],
-              active: Tensor, stage=no_stage, plan: Optional[PublishPlan] = None) -> Tuple[TrackerState, FeatureFrame]:
+              active: Tensor, stage=no_stage, plan: Optional[PublishPlan] = None,
+              regions: Optional[Callable] = None) -> Tuple[TrackerState, FeatureFrame]:
     """:func:`step` on validated inputs (``img (B, 1, H, W)`` uint8, ``t (B,)`` float64, ``active (B,)``
     bool, all on the state's device). Under ``torch.func`` transforms and forward-AD dual tensors
     every kernel takes its differentiable reference form where its own tensors carry a derivative
@@ -271,9 +273,15 @@ def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams
     ``plan`` (mono, capturable; ``FeatureTracker`` takes it from its host mirror of the clock,
     ``clock.publish_plan``): which streams run the publish stages. It must hold every stream the
     clock publishes in this step (at least as many lanes); None runs them on every stream under
-    masks. The outputs are the same for every plan that holds the publishing streams."""
+    masks. The outputs are the same for every plan that holds the publishing streams.
+
+    ``regions`` (mono; ``FeatureTracker.compile(regions=True)``): ``regions(name, fn, *args)`` runs
+    each of the step's three parts (:func:`_mono_track`, the publish stages, :func:`_mono_finish`),
+    e.g. each compiled once and shared by every step variant; ``name`` says which code and which
+    static arguments (the part's compiled graph). None calls them directly (one graph when the
+    whole step is traced)."""
     if params.mode == "mono":
-        return _mono(state, img, t, params, active, stage, plan)
+        return _mono(state, img, t, params, active, stage, plan, regions)
     return _fusion(state, img, t, right, params, active, stage)
 
 
@@ -365,30 +373,63 @@ def _publish_lanes(table, img_eq, publish: Tensor, lanes: int, params: TrackerPa
     return full.with_streams(rows, sub), of
 
 
-def _mono(state, img, t, params, arrived, stage, plan: Optional[PublishPlan] = None):
+def _inline(name: str, fn: Callable, *args):
+    """:func:`step_impl`'s default ``regions``: call the part itself."""
+    return fn(*args)
+
+
+def _mono_track(state, img, t, params, arrived, stage):
+    """The mono step's first part: the clock, then CLAHE, pyramid and LK for the tracked streams.
+    Returns ``(clock, decision, table, pyramid, equalised image, has_prediction, LK overflow)``."""
     clock, decision = mono_clock(state.clock, t, arrived, params)
+    return (clock, decision) + _track(state, img, decision.tracked, params, stage)
+
+
+def _mono_finish(state, table, t, pyr, clock, decision, has_prediction, of_lk, of_pub, numbered: bool,
+                 every_tracked: bool, params, stage):
+    """The mono step's last part: undistortion and velocities, updateID (``numbered``: some stream
+    ran the publish stages), the published count, the new state and the frame."""
     tracked, publish = decision.tracked, decision.publish
-    table, pyr, img_eq, has_prediction, of_lk = _track(state, img, tracked, params, stage)
-    lanes = table.batch if plan is None else min(plan.lanes, table.batch)
-    if lanes == 0:  # nobody publishes: no rejectWithF, setMask, addPoints; updateID has nothing to number
-        table, of_pub = table.replace(prev_pts=None), None
-    elif lanes < table.batch:
-        table, of_pub = _publish_lanes(table, img_eq, publish, lanes, params, stage)
-    else:
-        table, of_pub = _publish_stages(table, img_eq, publish, params, stage)
     table, velocity = undistorted_points(table, params.camera, t - state.prev_time, params, stage=stage)
-    if lanes == 0:
-        next_id = state.next_id
-    else:
+    if numbered:
         table, next_id = update_id(table, state.next_id)  # after undistortion, as VINS (spec §3.9, §3.10)
+    else:
+        next_id = state.next_id
     clock, sent = count_published(clock, publish)
     new = _commit(state, table, next_id, t, pyr, tracked, params.capturable, clock=clock,
-                  has_prediction=has_prediction, every_tracked=plan is not None and plan.every_tracked)
+                  has_prediction=has_prediction, every_tracked=every_tracked)
     f = new.features
     # VINS-Mono publishes features tracked at least once after detection (spec §3.11)
     valid = f.valid & (f.track_cnt > 1) & publish.unsqueeze(-1)
     return new, _frame(new, velocity, tracked, valid, f.valid.clone(), decision, sent, t,
                        merge_overflow(of_lk, of_pub))
+
+
+def _mono(state, img, t, params, arrived, stage, plan: Optional[PublishPlan] = None,
+          regions: Optional[Callable] = None):
+    run = _inline
+    if regions is not None:
+        run = regions
+        if state.prev_pyramid is None:
+            # the first step: this image's pyramid as the previous one, so that the track part's
+            # graph is every later step's (compiled once, not twice). The same values as _track's
+            # own fallback (prev = this step's pyramid), so the step's results are the same
+            first = prime_next_pyramid(image_pyramid(equalize(img, params), params), params.lk_options,
+                                       state.features.pts.dtype)
+            state = dataclasses.replace(state, prev_pyramid=first)
+    clock, decision, table, pyr, img_eq, has_prediction, of_lk = run("track", _mono_track, state, img, t, params,
+                                                                     arrived, stage)
+    publish = decision.publish
+    lanes = table.batch if plan is None else min(plan.lanes, table.batch)
+    if lanes == 0:  # nobody publishes: no rejectWithF, setMask, addPoints; updateID has nothing to number
+        table, of_pub = table.replace(prev_pts=None), None
+    elif lanes < table.batch:
+        table, of_pub = run(f"publish_{lanes}", _publish_lanes, table, img_eq, publish, lanes, params, stage)
+    else:
+        table, of_pub = run("publish", _publish_stages, table, img_eq, publish, params, stage)
+    every = plan is not None and plan.every_tracked
+    return run(f"finish_{'numbered' if lanes else 'unnumbered'}{'_every' if every else ''}", _mono_finish, state,
+               table, t, pyr, clock, decision, has_prediction, of_lk, of_pub, lanes > 0, every, params, stage)
 
 
 def _fusion(state, img, t, right, params, arrived, stage):
