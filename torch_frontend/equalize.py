@@ -312,10 +312,15 @@ def _clahe_blocks(src: torch.Tensor, clip_limit: float, gx: int, gy: int, blk) -
     # the four LUT bytes of every (value, block): byte _LOW_BYTE of the float words of its cell's tiles
     packed = lut.view(torch.uint8).view(B, 256, T * 4).index_select(2, blk.lut_bytes).view(torch.int32)
     q = packed.view(-1).index_select(0, key).view(torch.uint8).view(B, H, W, 4)  # (l11, l12, l21, l22) bytes
+    del key, packed  # peak memory: dead before the float planes exist
     # OpenCV: (l11 xa1 + l12 xa) ya1 + (l21 xa1 + l22 xa) ya, every product and sum rounded in float32
     p = torch.mul(q, blk.xw)  # uint8 * float32 -> float32 (B, H, W, 4): exact conversion, one rounding
-    tb = torch.add(p[..., 0::2], p[..., 1::2])  # (B, H, W, 2): top, bottom
-    tb.mul_(blk.yw)  # (H, 1, 2): ya1, ya
+    del q
+    # the sums and their products in place in lanes 0 and 2 (no second image-sized float plane:
+    # the step's peak memory is CLAHE's at large B); the same ops on the same values
+    tb = p[..., 0::2]
+    tb += p[..., 1::2]  # (B, H, W, 2): top, bottom
+    tb *= blk.yw  # (H, 1, 2): ya1, ya
     r = torch.add(tb[..., 0], tb[..., 1]).add_(_ROUND_MAGIC)  # (B, H, W); cvRound via 2^23
     return r.view(torch.uint8).view(B, H, W, 4)[..., _LOW_BYTE].contiguous()
 

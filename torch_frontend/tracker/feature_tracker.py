@@ -438,9 +438,9 @@ class FeatureTracker:
           undistortion + ids + the new state), each compiled once and shared by every variant that
           runs it, with the few host-side choices between them in eager Python. A mono run compiles
           the LK once instead of once per variant: on the CPU backend (inductor, a cold cache,
-          this 2-core machine, 2026-12-05) a mono EuRoC run's first three steps took 213 + 3 + 56 s,
-          where the three whole-step variants took 276 + 237 + 349 s
-          (4.5 min in all instead of 14.4). On CUDA this makes three
+          this 2-core machine, 2026-12-05) a mono EuRoC run's first three steps took 214 + 4 + 59 s,
+          where the three whole-step variants took 245 + 197 + 296 s (4.6 min in all instead of
+          12.3; ``benchmarks/compile_time.py [--whole]``). On CUDA this makes three
           CUDA graphs per step: not yet run on a GPU.
 
         Inductor fuses and reorders float reductions, so a compiled step's values may differ from
