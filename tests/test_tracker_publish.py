@@ -357,3 +357,30 @@ def test_compile_regions_compile_each_part_once_for_every_variant():
         _same(ref.track(x, [t]), tr.track(x, [t]), f"t={t}")
     assert len(graphs) == len(parts)
     _same(ref.state, tr.state, "state")
+
+
+@pytest.mark.slow  # dynamo traces the whole step once per variant
+def test_cuda_graph_outputs_keep_the_pyramid_padded_levels():
+    """With CUDA graphs the compiled step clones its outputs out of the graph's pool; the new
+    state's pyramid keeps its padded levels (cloned too), so the next step neither pads the
+    previous levels again nor fails the graph's guard on them (a recompile). Emulated on the CPU:
+    the clone path switched on (``cuda_graphs``), dynamo's graphs run as traced."""
+    cfg = _crop_cfg()
+    frames = _frames()[:6]
+    graphs = []
+
+    def counting(gm, example_inputs):
+        graphs.append(gm)
+        return gm.forward
+
+    ref = FeatureTracker(cfg, capturable=True)
+    tr = FeatureTracker(cfg, capturable=True)
+    tr.compile(backend=counting, regions=False)
+    tr._compiled.cuda_graphs = True  # the clone out of the pool (cudagraph_mark_step_begin: a no-op here)
+    torch._dynamo.reset()
+    for t, img in frames:
+        x = torch.from_numpy(img)[None, None]
+        _same(ref.track(x, [t]), tr.track(x, [t]), f"t={t}")
+        assert tr.state.prev_pyramid._padded, "the state's pyramid lost its padded levels"
+    assert len(graphs) == len(tr._compiled.variants) == 3  # one graph per variant, no recompile
+    _same(ref.state, tr.state, "state")

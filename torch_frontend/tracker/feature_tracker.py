@@ -157,7 +157,7 @@ class _CompiledStep:
                     torch.compiler.cudagraph_mark_step_begin()
                 out = fn(state, img, t, params, right, active)
                 if self.cuda_graphs:
-                    out = pytree.tree_map(lambda x: x.clone() if isinstance(x, torch.Tensor) else x, out)
+                    out = _clone_out_of_pool(out)
                 return out
             except Exception as exc:  # the compiler failed (not a bad input: those are checked before)
                 if not self.fallback:
@@ -166,6 +166,19 @@ class _CompiledStep:
                 warnings.warn(f"FeatureTracker.compile: the compiled step failed ({type(exc).__name__}: {exc}); "
                               f"running eager from now on", RuntimeWarning, stacklevel=3)
         return _pure_step(state, img, t, params, right, active, plan)
+
+
+def _clone_out_of_pool(out):
+    """A CUDA-graph step's ``(state, frame)`` cloned out of the graph's memory pool (the next replay
+    overwrites it). The state's pyramid is a pytree of its levels only, so its padded-level cache
+    (``Pyramid.padded``: the LK reads the previous levels' padded copies) is cloned across by hand:
+    without it the next step pads them again and fails the graph's guard on the cache once."""
+    cloned = pytree.tree_map(lambda x: x.clone() if isinstance(x, torch.Tensor) else x, out)
+    old, new = out[0], cloned[0]
+    src, dst = getattr(old, "prev_pyramid", None), getattr(new, "prev_pyramid", None)
+    if src is not None and dst is not None and src is not dst:
+        dst._padded = {k: v.clone() for k, v in src._padded.items()}
+    return cloned
 
 
 def _host_array(x: torch.Tensor) -> np.ndarray:
