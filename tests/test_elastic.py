@@ -102,46 +102,31 @@ def test_torchrun_rank_killed_once_resumes_from_its_checkpoint(track_job, tmp_pa
     assert no_staging_left(out)
 
 
-@pytest.mark.slow
-def test_torchrun_finished_stream_not_redone(track_job, tmp_path):
-    """Rank 0 killed at its last step (10), after its first input (8 frames) was finished and
-    checkpointed: the restarted rank 0 keeps that input's folder as it is and tracks the other
-    from step 9."""
-    args, ref = track_job
-    out = tmp_path / "out"
-    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="frame:10", restarts=1)
-    assert res.returncode == 0, res.stderr
-    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 9 (1 of its inputs finished)" in res.stderr
-    assert_same_job_outputs(ref, out)
-    assert no_staging_left(out)
+#: rank 0 killed around the end of its first input (8 frames; checkpoints every 4 steps), and where
+#: its restart resumes. ``frame:10``: after that input was finished and checkpointed at step 9, so
+#: the restarted rank keeps its folder as it is and tracks the other from step 9. ``frame:9``: right
+#: after the input ended, before the checkpoint that says so: its output is not committed yet (its
+#: staging folder, with the track images of the frames before the last checkpoint, stays), so the
+#: restarted rank redoes it from step 8 (a commit before that checkpoint left an input the resume
+#: redid without its earlier track images: the CI failure of stop 38). ``ended:9``: after that
+#: checkpoint, before the input's output is swapped in: the restarted rank swaps the staged set in
+#: and does not redo the input.
+KILLS_AROUND_AN_END = {
+    "finished_stream_not_redone": ("frame:10", "resuming from its checkpoint at step 9 (1 of its inputs finished)"),
+    "ended_before_its_checkpoint": ("frame:9", "resuming from its checkpoint at step 8"),
+    "ended_before_its_commit": ("ended:9", "resuming from its checkpoint at step 9 (1 of its inputs finished)"),
+}
 
 
 @pytest.mark.slow
-def test_torchrun_killed_after_a_stream_ended_before_its_checkpoint(track_job, tmp_path):
-    """Rank 0 killed at step 9, right after its first input (8 frames) ended and before the
-    checkpoint that says so: the input's output is not committed yet (its staging folder, with the
-    track images of the frames before the last checkpoint, stays), so the restarted rank redoes
-    it from step 8 and ``out`` is the uninterrupted job's. (A commit before that checkpoint left
-    an input the resume redid without its earlier track images: the CI failure of stop 38.)"""
+@pytest.mark.parametrize("case", list(KILLS_AROUND_AN_END))
+def test_torchrun_rank_killed_around_the_end_of_an_input(track_job, tmp_path, case):
+    kill_at, resumed = KILLS_AROUND_AN_END[case]
     args, ref = track_job
     out = tmp_path / "out"
-    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="frame:9", restarts=1)
+    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at=kill_at, restarts=1)
     assert res.returncode == 0, res.stderr
-    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 8" in res.stderr
-    assert_same_job_outputs(ref, out)
-    assert no_staging_left(out)
-
-
-@pytest.mark.slow
-def test_torchrun_killed_after_a_stream_ended_before_its_commit(track_job, tmp_path):
-    """Rank 0 killed right after the checkpoint that records its first input finished (step 9),
-    before that input's output is swapped in: the restarted rank swaps the staged set in and
-    does not redo the input."""
-    args, ref = track_job
-    out = tmp_path / "out"
-    res = torchrun(args + ["--out", out, "--checkpoint-every", 4], kill_rank=0, kill_at="ended:9", restarts=1)
-    assert res.returncode == 0, res.stderr
-    assert "rank 0: restart 1 of the job: resuming from its checkpoint at step 9 (1 of its inputs finished)" in res.stderr
+    assert f"rank 0: restart 1 of the job: {resumed}" in res.stderr
     assert_same_job_outputs(ref, out)
     assert no_staging_left(out)
 

@@ -350,7 +350,7 @@ def test_compile_regions_compile_each_part_once_for_every_variant():
     assert set(parts) == {"track", "publish", "finish_unnumbered", "finish_unnumbered_every", "finish_numbered_every"}
     assert {p.name for p in tr._compiled.variants} == {"track", "track_every", "all_every"}
     # one graph per part: the first frame's track part is every later one's (a primed pyramid of
-    # the first image stands for the missing previous one, lk.track.prime_next_pyramid)
+    # the first image stands for the missing previous one, lk.track._prime_next_pyramid)
     assert len(graphs) == len(parts)
     for t, img in frames[5:]:
         x = torch.from_numpy(img)[None, None]

@@ -234,18 +234,24 @@ class RunRecorder:
         if exc_type is None:
             if self._pending is not None:  # written with commit=False and never committed
                 self.commit()
-        elif self._resumable(exc):
-            # SIGINT / SIGTERM (a preemption), or a sharded job stopped by another rank, after a
-            # checkpoint: the staging folder stays, for --resume or the job's restart (the next
-            # run without it removes it as a stale temporary)
-            self._stage = None
-            self._bags = []
-            self._tmp_tracks = None
-            if isinstance(exc, KeyboardInterrupt):
-                exc.resumable = True  # the CLI's message: rerun with --resume
         else:
-            self.abort()
+            self._stop(exc)
         return False
+
+    def _stop(self, exc: BaseException) -> None:
+        """The run stopped with ``exc``: remove the staging folder, or keep it when ``exc`` stops a
+        checkpointed run that goes on later (:meth:`_resumable`)."""
+        if not self._resumable(exc):
+            self.abort()
+            return
+        # SIGINT / SIGTERM (a preemption), or a sharded job stopped by another rank, after a
+        # checkpoint: the staging folder stays, for --resume or the job's restart (the next run
+        # without it removes it as a stale temporary)
+        self._stage = None
+        self._bags = []
+        self._tmp_tracks = None
+        if isinstance(exc, KeyboardInterrupt):
+            exc.resumable = True  # the CLI's message: rerun with --resume
 
     def _resumable(self, exc: BaseException) -> bool:
         """Whether ``exc`` stops a checkpointed run that goes on later (its staging folder stays):
@@ -468,10 +474,7 @@ class RunRecorder:
             if commit:
                 self.commit()
         except BaseException as exc:
-            if self._resumable(exc):
-                self.__exit__(type(exc), exc, None)
-            else:
-                self.abort()
+            self._stop(exc)
             raise
         return [self.out / n for n in names]
 

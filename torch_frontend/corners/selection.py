@@ -191,19 +191,6 @@ def _nms_candidates(t: torch.Tensor, above: Optional[torch.Tensor] = None, windo
     cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
     cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
     return cand
-    f = t.reshape(-1)
-    r = torch.maximum(f[:-2], f[1:-1])  # r[j]: row max centred on j + 1
-    r = torch.maximum(r, f[2:], out=r)
-    d = torch.maximum(r[:-2 * W], r[W:-W])  # d[k]: 3x3 max centred on k + W + 1
-    d = torch.maximum(d, r[2 * W:], out=d)
-    centre = f[W + 1:N - W - 1]
-    c = cand.view(-1)[W + 1:N - W - 1]
-    torch.eq(centre, d, out=c)
-    c &= centre != 0
-    # fill_ on views, not ``cand[...] = False`` (a Python scalar is uploaded as a tensor first)
-    cand[:, ::H - 1, :].fill_(False)  # rows 0 and H - 1
-    cand[:, :, ::W - 1].fill_(False)  # columns 0 and W - 1
-    return cand
 
 
 def _greedy_accept(pos: torch.Tensor, cvalid: torch.Tensor, mc: torch.Tensor, min_distance: float,

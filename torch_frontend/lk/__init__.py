@@ -37,7 +37,15 @@ from .capturable import _capturable_consts, _capturable_tables, _lk_capturable, 
 from .eager import _compiled_step, _lk_eager, _lk_step, _write_back  # noqa: F401
 from .implicit import _implicit_attach, _newton_terms, _patch_offsets, _solve2, _wants_grad  # noqa: F401
 from .options import GRAD_MODES, LKOptions
-from .track import FlowBackResult, LKResult, _forward_backward_impl, _level_cap, _lk_pass, _track_lk_impl  # noqa: F401
+from .track import (  # noqa: F401
+    FlowBackResult,
+    LKResult,
+    _forward_backward_impl,
+    _level_cap,
+    _lk_pass,
+    _prime_next_pyramid,
+    _track_lk_impl,
+)
 from .transforms import has_wrapped_tensor, track_transformed
 from .windows import (  # noqa: F401  (the private names are imported from here too)
     _fixed_weights,

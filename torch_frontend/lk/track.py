@@ -66,7 +66,7 @@ def _level_cap(prev: Pyramid, nxt: Pyramid, max_level: int, win: Tuple[int, int]
     return top
 
 
-def prime_next_pyramid(pyr: Pyramid, opts: LKOptions, dtype: torch.dtype) -> Pyramid:
+def _prime_next_pyramid(pyr: Pyramid, opts: LKOptions, dtype: torch.dtype) -> Pyramid:
     """``pyr`` with the padded levels an LK call with ``opts`` caches on its ``next`` pyramid (the
     following call's ``prev``: the template is read from them) made now, as the call would make
     them: a pyramid that no LK has seen then holds what one that has seen one holds (a compiled

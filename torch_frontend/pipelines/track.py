@@ -378,7 +378,6 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     tracker_seconds = before["tracker_seconds"]
     ended: List[int] = []  # streams finished since the last checkpoint
     checkpointed = stage is not None and stage.writer.enabled
-    pending: List[Any] = []  # recorders of finished streams, written, to commit after the next checkpoint
     if resumed is not None:
         _commit_finished(stage, outs, results)
     t0 = time.perf_counter()
@@ -389,7 +388,6 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                 "input_wait_seconds": before["input_wait_seconds"] + stream.wait_seconds}
 
     def checkpoint(recs) -> None:
-        ended.clear()
         live = {b: r for b, r in enumerate(recs) if r is not None and results[b] is None}
         stage.save(steps, {"tracker": tracker.state_dict(), "recorders": {b: r.counters() for b, r in live.items()},
                            "finished": {b: r for b, r in enumerate(results) if r is not None},
@@ -397,6 +395,13 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                    {b: r.take_chunk() for b, r in live.items()})
         for r in live.values():
             r.keep_on_interrupt = True
+        # the streams this checkpoint records finished: their written sets swapped in now, not
+        # before (RunRecorder.write(commit=False))
+        if ended and ckpt.kill_point("ended", steps):  # the test hook: recorded finished, not swapped in
+            ckpt.kill_now()
+        for b in ended:
+            recs[b].commit()
+        ended.clear()
 
     def finish(b: int, rec) -> None:
         now = times_now()
@@ -419,21 +424,10 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
         summary = rec.summary(seconds, skipped, extra=info)
         summary["per_stream"][0].update(stream_config_entry(cfgs[b]))
         copy_imu(rec, cfgs, sources, seqs, opt, streams=[b])
-        # with checkpoints, committed after the one that records it finished (RunRecorder.write)
+        # with checkpoints, swapped in by the next one, which records it finished
         rec.write(summary, commit=not checkpointed)
         results[b] = {"summary": summary, "lengths": rec.track_lengths()}
         ended.append(b)
-        if checkpointed:
-            pending.append(rec)
-
-    def commit_pending() -> None:
-        if pending:
-            from . import checkpoint as ckpt
-
-            if ckpt.kill_point("ended", steps):  # the test hook: recorded finished, not swapped in
-                ckpt.kill_now()
-        while pending:
-            pending.pop(0).commit()
 
     def recorder(b: int):
         if results[b] is not None:  # finished before the checkpoint this run continues from
@@ -477,13 +471,11 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
                     # that a resumed run does not redo it
                     if stage.writer.due(steps) or (ended and stage.writer.enabled):
                         checkpoint(recs)
-                        commit_pending()
         for b in range(B):
             if results[b] is None:
                 finish(b, recs[b])
         if checkpointed and ended:
             checkpoint(recs)
-        commit_pending()
     now = times_now()
     return {"streams": results, "steps": steps, "seconds": round(now["seconds"], 6),
             "tracker_seconds": round(tracker_seconds, 6), **_input_times(stream, opt.workers),

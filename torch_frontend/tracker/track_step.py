@@ -28,8 +28,7 @@ import torch
 
 from .._autodiff import derivative_wanted, is_vmapped, straight_through
 from .._checks import as_image_batch, check_shape
-from ..lk import exact_float32
-from ..lk.track import prime_next_pyramid
+from ..lk import _prime_next_pyramid, exact_float32
 from .clock import ClockDecision, PublishPlan, count_published, mono_clock
 from .frame import FeatureFrame
 from .params import TrackerParams
@@ -414,7 +413,7 @@ def _mono(state, img, t, params, arrived, stage, plan: Optional[PublishPlan] = N
             # the first step: this image's pyramid as the previous one, so that the track part's
             # graph is every later step's (compiled once, not twice). The same values as _track's
             # own fallback (prev = this step's pyramid), so the step's results are the same
-            first = prime_next_pyramid(image_pyramid(equalize(img, params), params), params.lk_options,
+            first = _prime_next_pyramid(image_pyramid(equalize(img, params), params), params.lk_options,
                                        state.features.pts.dtype)
             state = dataclasses.replace(state, prev_pyramid=first)
     clock, decision, table, pyr, img_eq, has_prediction, of_lk = run("track", _mono_track, state, img, t, params,
