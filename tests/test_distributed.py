@@ -515,7 +515,7 @@ def test_loop_separate_graphs_two_ranks_matches_one_process(loop_inputs, tmp_pat
     assert [e["rank"] for e in index["streams"]] == [0, 1] and no_temporaries(two)
 
 
-def test_ddp_example_script(tmp_path):
+def test_ddp_example_script(tmp_path, monkeypatch):
     """``docs/examples/ddp_track.py``: each rank tracks its own sequence (the sample's cam0 on rank 0,
     its shorter cam1 on rank 1: uneven steps under ``DistributedDataParallel.join``)."""
     import importlib.util
@@ -523,10 +523,27 @@ def test_ddp_example_script(tmp_path):
     spec = importlib.util.spec_from_file_location("ddp_track", REPO / "docs" / "examples" / "ddp_track.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
+
+    destroy = dist.destroy_process_group
+
+    def counted_destroy(*a, **k):
+        # a DDP wrapper alive when the group goes would free the group later, from its C++ reducer
+        # with the GIL held: the teardown deadlock the script avoids (one CI run hung in it)
+        import gc
+
+        gc.collect()
+        live = sum(isinstance(o, DistributedDataParallel) for o in gc.get_objects())
+        print(f"DDP wrappers alive at destroy_process_group: {live}")
+        return destroy(*a, **k)
+
+    monkeypatch.setattr(dist, "destroy_process_group", counted_destroy)  # the forked ranks inherit it
     res = run_ranks(["--steps", 8, "--workers", 1], tmp_path / "logs", entry=mod.main)
     assert [r.rc for r in res] == [0, 0], res
     assert "rank 0: 1 sequences, 8 steps" in res[0].out and "rank 1: 1 sequences, 6 steps" in res[1].out
     assert "2 ranks, 2 sequences: mean loss" in res[0].out
+    assert all("DDP wrappers alive at destroy_process_group: 0" in r.out for r in res), res
 
 
 def test_job_in_one_process(monkeypatch):

@@ -20,6 +20,7 @@ Run it with ``torchrun`` (it reads the launcher's environment).
 from __future__ import annotations
 
 import argparse
+import gc
 from pathlib import Path
 
 import torch
@@ -81,6 +82,14 @@ def main(argv=None) -> float:
     mean = float(summed[0] / summed[1].clamp_min(1))
     if env.rank == 0:
         print(f"{env.world_size} ranks, {len(inputs)} sequences: mean loss {mean:.3e} over {int(summed[1])} steps")
+    # The DDP wrapper goes before the group. Its C++ reducer holds the group, and a group freed from
+    # there (when main's locals die, after destroy_process_group) runs gloo's destructor with the GIL
+    # held: that joins gloo's worker threads, and a worker still dropping a finished collective's
+    # tensor (whose Python object died first) waits for the GIL, a deadlock (one CI run hung so).
+    # Freed here, the group's last owner is torch.distributed's registry, whose binding releases the
+    # GIL while it destroys the group. gc: DDP's hooks make reference cycles.
+    del ddp, opt
+    gc.collect()
     # every rank reaches the teardown together: destroying a gloo group while a peer is already gone
     # can hang (pytorch/pytorch#75097)
     dist.barrier()
