@@ -132,7 +132,7 @@ def render(argv: List[str]) -> int:
         "ms per step and per stream-frame; speed against OpenCV on one core (6 ms per frame); the peak of live",
         "device memory (the simulated tensors' storages, each freed at its last reference as on a GPU: `run`",
         "drops the tool's hold on in-place ops' inputs, see `_tool`; a real run reserves more).",
-        "Issue 28's targets, where each stands and the floor of tensor ops that stops it:",
+        "The step's GPU targets, where each stands and the floor of tensor ops that stops it:",
         "[docs/benchmarks.md](../../docs/benchmarks.md#the-gpu-step-modelled-targets-and-the-floors-of-tensor-ops).",
         "",
         f"{a.before_label} → {a.after_label}:",
