@@ -286,7 +286,7 @@ def _template(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: torch.Te
         if edge is None:
             return G
         if _tuning.inplace_ok(G):
-            G[..., :nS] *= edge.to(G.dtype)
+            G[..., :nS].mul_(edge.to(G.dtype))  # (``G[...] *=`` would add __setitem__'s copy_ onto itself)
             return G
         return torch.cat((G[..., :nS] * edge.to(G.dtype), G[..., nS:]), -1)
 
