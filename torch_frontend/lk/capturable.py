@@ -163,7 +163,8 @@ def _template_conv(lv: _Level, ucl: torch.Tensor, frac: torch.Tensor, lanes: tor
     Q = F.conv2d(P.unsqueeze(1), K)  # (m, 3, wh + 1, ww + 1): I at patch (r + 1, c + 1), Ix, Iy there
     edge = (lv.rowin.take(ucl[1].unsqueeze(1) + k["ar_ph"]).unsqueeze(2)
             * lv.colin.take(ucl[0].unsqueeze(1) + k["ar_c"][:ww + 1]).unsqueeze(1))
-    Q[:, 1:].mul_(edge.unsqueeze(1))  # not ``Q[:, 1:] *= ...``: its __setitem__ adds a copy_ of the slice onto itself
+    # mul_ on the slice, not ``Q[:, 1:] *= ...``, whose __setitem__ adds a copy_ of the slice onto itself
+    Q[:, 1:].mul_(edge.unsqueeze(1))
     iw = _fixed_weights(frac, k)  # (4, m): iw00, iw01, iw10, iw11 (float32 integers)
     w = iw.t().to(torch.float64).reshape(m, 1, 1, 2, 2).expand(m, 3, 1, 2, 2).reshape(3 * m, 1, 2, 2)
     S = F.conv2d(Q.view(1, 3 * m, wh + 1, ww + 1), w, bias, groups=3 * m).view(m, 3, wh, ww)
