@@ -45,9 +45,10 @@ class Variant(NamedTuple):
     capturable: bool = False
     differentiable: bool = False
     F_method: Optional[str] = None
+    lk_backend: Optional[str] = None
 
 
-VARIANTS: Dict[str, Variant] = {
+_BASE_VARIANTS: Dict[str, Variant] = {
     "default": Variant(),
     "capturable": Variant(capturable=True),
     "differentiable": Variant(differentiable=True),
@@ -55,6 +56,19 @@ VARIANTS: Dict[str, Variant] = {
     "lo": Variant(F_method="lo"),
     "lo_capturable": Variant(capturable=True, F_method="lo"),
 }
+
+
+def tensor_variant(variant: str) -> str:
+    """The name of ``variant`` run with the tensor LK and pyramid (``lk_backend="tensor"``): ``tensor``
+    for ``default``, ``tensor_<variant>`` for the others. Their digests are the ones every variant
+    had before the fused kernels became the default (kept, not regenerated: the tensor path's bits
+    did not move)."""
+    return "tensor" if variant == "default" else f"tensor_{variant}"
+
+
+#: every variant on the default backend (the fused kernels on the CPU), and each on the tensor kernels
+VARIANTS: Dict[str, Variant] = {**_BASE_VARIANTS,
+                                **{tensor_variant(k): v._replace(lk_backend="tensor") for k, v in _BASE_VARIANTS.items()}}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,17 +220,20 @@ SCENARIOS: Dict[str, Scenario] = {
     "micro": Scenario(lambda: tf.load_config(CONFIGS / "euroc.yaml"), "mono", 1, _micro_steps),
 }
 
-# (scenario, variant) cases; the default suite runs FAST, the slow marker the rest
-CASES: List[Tuple[str, str]] = [
+# (scenario, variant) cases on the default backend; each also runs on the tensor kernels
+_BASE_CASES: List[Tuple[str, str]] = [
     *((s, "default") for s in SCENARIOS),
     *((s, v) for s in ("mono", "stereo", "prediction", "kb_fisheye", "flight")
       for v in ("capturable", "differentiable", "diff_capturable")),
     ("mono", "lo"), ("flight", "lo"), ("mono", "lo_capturable"),
     ("mono8", "capturable"), ("mono8", "diff_capturable"), ("mono8", "lo_capturable"),
 ]
+CASES: List[Tuple[str, str]] = _BASE_CASES + [(s, tensor_variant(v)) for s, v in _BASE_CASES]
+# the default suite runs FAST, the slow marker the rest
 FAST = {("mono", "default"), ("mono8", "default"), ("stereo", "default"), ("prediction", "default"),
         ("kb_fisheye", "default"), ("flight", "default"), ("mono8", "capturable"), ("stereo", "capturable"),
-        ("prediction", "differentiable"), ("mono", "differentiable"), ("mono", "lo")}
+        ("prediction", "differentiable"), ("mono", "differentiable"), ("mono", "lo"),
+        ("mono8", "tensor"), ("mono8", "tensor_capturable"), ("stereo", "tensor")}
 NEEDS_SHARED = {"micro"}
 
 
@@ -228,7 +245,7 @@ def run_case(scenario: str, variant: str) -> Iterator[Tuple[str, Tuple[str, ...]
     if v.F_method is not None:
         cfg = dataclasses.replace(cfg, F_method=v.F_method)
     tr = tf.FeatureTracker(cfg, num_streams=sc.num_streams, mode=sc.mode, capturable=v.capturable,
-                           differentiable=v.differentiable)
+                           differentiable=v.differentiable, lk_backend=v.lk_backend)
     for k, s in enumerate(sc.steps()):
         if s.before is not None:
             s.before(tr)

@@ -24,7 +24,7 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     # image-sequence readers and the MultiStream batcher
     ("datasets", ("io",)),
     # the image kernels of the front end, and the one room of their CPU tuning
-    ("kernels", ("_tuning", "equalize", "pyramid", "corners", "masks", "lk", "ransac")),
+    ("kernels", ("_tuning", "fused", "equalize", "pyramid", "corners", "masks", "lk", "ransac")),
     # the front end: one pure step over the feature table, and the FeatureTracker around it
     ("front end", ("tracker",)),
     # training through the front end: nn.Module wrappers, tracking losses, the soft status

@@ -260,9 +260,10 @@ def test_an_lk_iteration_budget_trades_launches_for_an_overflow_flag():
     points need at most 12 iterations per level; a budget that is too small says so per stream."""
     cfg = tf.load_config(CFG)
     steps = _sequence("sample", 1, 8)
-    ref = FeatureTracker(cfg, capturable=False)
-    short = FeatureTracker(cfg, capturable=True, lk_iter_budget=(16, 14, 12, 10))
-    tiny = FeatureTracker(cfg, capturable=True, lk_iter_budget=2)
+    # the tensor LK's budgets (a budget runs the tensor LK: the fused one always runs OpenCV's count)
+    ref = FeatureTracker(cfg, capturable=False, lk_backend="tensor")
+    short = FeatureTracker(cfg, capturable=True, lk_iter_budget=(16, 14, 12, 10), lk_backend="tensor")
+    tiny = FeatureTracker(cfg, capturable=True, lk_iter_budget=2, lk_backend="tensor")
     tripped = []
     for img, stamps in steps:
         fr = ref.track(img, stamps)
@@ -272,7 +273,8 @@ def test_an_lk_iteration_budget_trades_launches_for_an_overflow_flag():
         tripped.append(bool(tiny.track(img, stamps).overflow.any()))
     assert any(tripped) and not tripped[0]  # the first frame tracks nothing
     counts = []
-    for tr in (FeatureTracker(cfg, capturable=True), FeatureTracker(cfg, capturable=True, lk_iter_budget=(16, 14, 12, 10))):
+    for tr in (FeatureTracker(cfg, capturable=True, lk_backend="tensor"),
+               FeatureTracker(cfg, capturable=True, lk_iter_budget=(16, 14, 12, 10), lk_backend="tensor")):
         state = tr.state
         for img, stamps in steps[:3]:
             state, _ = tr.step(state, img, stamps)

@@ -320,20 +320,22 @@ def test_batch_equals_separate_calls_and_modes(cam0, device, monkeypatch):
 
     from torch_frontend import _tuning
 
-    ref_fb = track_lk(tA, tB, pts, valid, forward_backward=True)
+    # (the tensor LK's stream groups: the fused LK has one kernel for every stream, tests/test_fused.py)
+    out, st = track_lk(tA, tB, pts, valid, lk_backend="tensor")
+    ref_fb = track_lk(tA, tB, pts, valid, forward_backward=True, lk_backend="tensor")
     with monkeypatch.context() as mp:
         mp.setitem(_tuning.STRATEGIES, device.type, dataclasses.replace(_tuning.CPU, lk_max_streams=1))
-        og, sg = track_lk(tA, tB, pts, valid)
+        og, sg = track_lk(tA, tB, pts, valid, lk_backend="tensor")
         assert torch.equal(sg, st) and torch.equal(og, out)
-        qa, qb = build_pyramid(tA, 3), build_pyramid(tB, 3)
-        og, sg = track_lk(qa, qb, pts, valid, forward_backward=True)
+        qa, qb = build_pyramid(tA, 3, backend="tensor"), build_pyramid(tB, 3, backend="tensor")
+        og, sg = track_lk(qa, qb, pts, valid, forward_backward=True, lk_backend="tensor")
         assert torch.equal(sg, ref_fb[1]) and torch.equal(og, ref_fb[0])
         # the padded levels (win 21 -> pad 22) are built once for the whole batch and stay on the
         # pyramids: the next image's are reused when it becomes the previous one
         assert (0, 22, 22, pts.dtype) in qb._padded and qb._padded[(0, 22, 22, pts.dtype)].shape[0] == 3
     # pyramids built once (as the tracker keeps them) and the sync-free fixed-iteration mode
-    pa, pb = build_pyramid(tA, 3), build_pyramid(tB, 3, with_gradients=False)
-    o2, s2 = track_lk(pa, pb, pts, valid, capturable=True)
+    pa, pb = build_pyramid(tA, 3, backend="tensor"), build_pyramid(tB, 3, with_gradients=False, backend="tensor")
+    o2, s2 = track_lk(pa, pb, pts, valid, capturable=True, lk_backend="tensor")
     assert torch.equal(s2, st) and (o2 - out).abs().max() <= 1e-5
 
 

@@ -168,7 +168,8 @@ def test_conv_pyramid_equals_separable_and_cv2(frame, hw, monkeypatch):
     h, w = hw
     imgs = np.stack([frame[:h, :w], frame[-h:, -w:]])
     x = torch.from_numpy(imgs)[:, None]
-    ref = build_pyramid(x, max_level=3)
+    ref = build_pyramid(x, max_level=3, backend="tensor")
+    fused = build_pyramid(x, max_level=3, backend="fused")  # one op, uint8 levels (tests/test_fused.py)
     monkeypatch.setitem(_tuning.STRATEGIES, "cpu", dataclasses.replace(_tuning.CPU, pyramid_conv=True))
     _build_pyramid_impl(x, 3, False, True)  # warm-up: cached taps
     with OpCounter() as c:
@@ -176,12 +177,14 @@ def test_conv_pyramid_equals_separable_and_cv2(frame, hw, monkeypatch):
     assert c.syncs == 0, c.summary()
     if min(h, w) >= 16:  # pads smaller than every level: one reflection_pad2d each (else a gather)
         assert c.kernels == 10, c.summary()  # pad, convert; 3 x (conv, floor); 2 pads
-    got = build_pyramid(x, max_level=3)
-    assert got.rounded
+    got = build_pyramid(x, max_level=3, backend="tensor")
+    assert got.rounded and fused.rounded and fused.packed is not None
     for l in range(4):
         assert got.levels[l].dtype == torch.float32 and torch.equal(got.levels[l], ref.levels[l]), l
-        assert torch.equal(got.grads[l], ref.grads[l]), l
+        assert fused.levels[l].dtype == torch.uint8 and torch.equal(fused.levels[l].float(), ref.levels[l]), l
+        assert torch.equal(got.grads[l], ref.grads[l]) and torch.equal(fused.grads[l], ref.grads[l]), l
         assert torch.equal(got.padded(l, 3, 4), ref.padded(l, 3, 4)), l
+        assert torch.equal(fused.padded(l, 3, 4, torch.float32), ref.padded(l, 3, 4)), l
     for b in range(2):
         c = imgs[b]
         for l in range(1, 4):

@@ -159,8 +159,9 @@ def _same(a, b, where):
 
 
 #: kernels of the per-stream pyramid select that a step whose plan knows every stream is tracked
-#: skips: one ``where`` per level (4) and per cached padded level (4)
-PYRAMID_SELECT_KERNELS = 8
+#: skips: one ``where`` on the packed pyramid (the fused kernels' pyramid, the default; the tensor
+#: pyramid: one per level and per cached padded level, 8)
+PYRAMID_SELECT_KERNELS = 1
 
 
 def test_an_unpublished_step_runs_no_publish_kernels_and_publishes_the_same_frames():

@@ -110,8 +110,16 @@ def test_state_and_frame_are_pytrees():
     back = pytree.tree_unflatten(leaves, spec)
     assert isinstance(back, TrackerState) and isinstance(back.features, FeatureTable)
     assert _same(_leaves(back), _leaves(state))
-    # the feature table's columns, the clock and the pyramid levels are all leaves
-    assert any(x is state.features.pts for x in leaves) and any(x is state.prev_pyramid.levels[0] for x in leaves)
+    # the feature table's columns, the clock and the pyramid are leaves (a fused pyramid: its packed
+    # tensor, whose views the levels are; the tensor pyramid: its levels)
+    pyr = state.prev_pyramid
+    assert any(x is state.features.pts for x in leaves)
+    assert any(x is (pyr.packed if pyr.packed is not None else pyr.levels[0]) for x in leaves)
+    assert all(torch.equal(a, b) for a, b in zip(back.prev_pyramid.levels, pyr.levels))
+    tensor_state, _ = FeatureTracker(tf.load_config(REPO / "configs" / "euroc_stereo_mei.yaml"), mode="fusion",
+                                     lk_backend="tensor").step(tr.initial_state(), img, [t], right=img)
+    tl, _ = pytree.tree_flatten(tensor_state)
+    assert tensor_state.prev_pyramid.packed is None and any(x is tensor_state.prev_pyramid.levels[0] for x in tl)
     fl, fspec = pytree.tree_flatten(frame)
     assert isinstance(pytree.tree_unflatten(fl, fspec), FeatureFrame)
     assert any(x is frame.right_uv for x in fl)

@@ -54,8 +54,12 @@ def _equal(a, b):
 def test_strategy_by_device():
     assert _tuning.for_device(torch.device("cpu")) is _tuning.CPU
     assert _tuning.for_device("cpu") is _tuning.CPU
-    for dev in ("cuda", "cuda:1", torch.device("meta")):
-        assert _tuning.for_device(dev) is _tuning.ONE_PASS
+    for dev in ("cuda", "cuda:1"):
+        assert _tuning.for_device(dev) is _tuning.CUDA
+    assert _tuning.for_device(torch.device("meta")) is _tuning.ONE_PASS
+    # the fused pyramid and LK where they have kernels (numba, Triton); the tensor kernels elsewhere
+    assert (_tuning.CPU.lk_backend, _tuning.CUDA.lk_backend, _tuning.ONE_PASS.lk_backend) == ("fused", "fused", "tensor")
+    assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor") == _tuning.ONE_PASS
     one = _tuning.ONE_PASS
     assert one.clahe_rows(64 * 480, 752) == [(0, 64 * 480)]
     assert one.pyramid_streams(64, 480, 752) is None
@@ -77,16 +81,20 @@ def test_lk_grouped_on_cpu_equals_one_pass(frames, monkeypatch):
     with an initial guess and with the backward check."""
     prev, nxt, pts, valid = _lk_case(frames)
     guess = pts + torch.tensor([1.5, -0.75])
+
+    def calls():  # the tensor LK's grouping (the fused LK's threads: tests/test_fused.py)
+        kw = dict(lk_backend="tensor")
+        return [lk.track_lk(prev, nxt, pts, valid, **kw), lk.track_lk(prev, nxt, pts, valid, init_pts=guess,
+                                                                      max_level=1, **kw),
+                lk.track_lk(prev, nxt, pts, valid, forward_backward=True, fb_max_level=1, **kw)]
+
     monkeypatch.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)
-    one = [lk.track_lk(prev, nxt, pts, valid), lk.track_lk(prev, nxt, pts, valid, init_pts=guess, max_level=1),
-           lk.track_lk(prev, nxt, pts, valid, forward_backward=True, fb_max_level=1)]
+    one = calls()
     for lanes, streams in ((1, 8), (pts.shape[1], 1), (2 * pts.shape[1], 8)):
         grouped = dataclasses.replace(_tuning.CPU, lk_max_lanes=lanes, lk_max_streams=streams)
         assert grouped.lk_streams(3, pts.shape[1]) is not None  # really grouped
         monkeypatch.setitem(_tuning.STRATEGIES, "cpu", grouped)
-        got = [lk.track_lk(prev, nxt, pts, valid), lk.track_lk(prev, nxt, pts, valid, init_pts=guess, max_level=1),
-               lk.track_lk(prev, nxt, pts, valid, forward_backward=True, fb_max_level=1)]
-        assert _equal(got, one), (lanes, streams)
+        assert _equal(calls(), one), (lanes, streams)
 
 
 # ---------------------------------------------------------------- fast forms == reference
@@ -227,14 +235,15 @@ def test_impl_layer_equals_doors_and_checks_nothing(frames, monkeypatch):
 
     ref = doors()
     states = ransac._seeds(B, seed=7)
-    opts = lk.LKOptions(21, 3, 30, 0.01, 1e-4, True, False)
+    opts = lk.LKOptions(21, 3, 30, 0.01, 1e-4, True, False, backend="fused")  # the doors resolve "fused" here
     opts1 = dataclasses.replace(opts, max_level=1)
     _forbid_checks(monkeypatch)
     with pytest.raises(AssertionError, match="input check"):
         doors()
     eq, eq2 = (equalize._clahe_impl(x[:, 0], 3.0, 8, 8).image[:, None] for x in (imgs, nxt_imgs))
-    P, Q = pyramid._build_pyramid_impl(eq, 3, False, True), pyramid._build_pyramid_impl(eq2, 3, False, True)
+    P, Q = (pyramid._build_pyramid_impl(x, 3, False, True, pad=22, backend="fused") for x in (eq, eq2))
     out, st, _ = lk._track_lk_impl(P, Q, pts, valid, None, opts)
+    # the forward-backward check: the door's one op (both passes) == the two calls a stage makes
     out1, st1, _ = lk._track_lk_impl(P, Q, pts, valid, guess, opts1)
     st1 = lk._forward_backward_impl(P, Q, pts, out1, st1, opts1, 1, 0.5, True).status
     res = ransac._find_fundamental_impl(pts.double(), out.double(), fv & st, 1.0, 0.99, 1000, states, None)

@@ -34,6 +34,9 @@ from ._autodiff import derivative_wanted, straight_through
 from ._cache import cached, holds_plain_tensors
 from ._checks import as_float_image, as_image_batch
 from .errors import ConfigError
+from .fused import resolve_backend
+from .fused.layout import DEFAULT_PAD, PyramidLayout
+from .fused.ops import pyramid_op
 
 __all__ = ["Pyramid", "build_pyramid", "pyr_down", "scharr_gradients", "pad_reflect101"]
 
@@ -151,21 +154,50 @@ class Pyramid:
     """An image pyramid kept between frames (the tracker keeps the last one).
 
     Attributes:
-        levels: ``L + 1`` tensors ``(B, 1, H_l, W_l)`` float grey levels, level 0 = the image.
+        levels: ``L + 1`` tensors ``(B, 1, H_l, W_l)`` grey levels, level 0 = the image: float, or, for
+            a pyramid built by the fused kernel (``packed``), uint8 views into ``packed``.
         grads: ``None`` or ``L + 1`` tensors ``(B, 2, H_l, W_l)`` Scharr ``(Ix, Iy)`` of each level
             (optional: the LK computes the derivatives it needs from its own windows).
-        The LK also caches padded copies of the levels here (:meth:`padded`), so that a pyramid
-        that was the next image of one call is not padded again as the previous image of the next.
         rounded: levels hold OpenCV's 8-bit values (built from uint8 with per-level rounding); LK
             then defaults to its fixed-point emulation.
+        packed: ``(B, total)`` uint8, the packed pyramid of ``fused/layout.py`` (every level padded by
+            ``pad`` pixels of BORDER_REFLECT_101, as OpenCV's ``buildOpticalFlowPyramid`` stores them),
+            or None (a pyramid of separate level tensors). The fused LK reads it as it is.
+        pad: the border of ``packed`` (0 without it).
+
+    The LK also caches padded copies of the levels here (:meth:`padded`), so that a pyramid that was
+    the next image of one call is not padded again as the previous image of the next.
     """
 
     levels: List[torch.Tensor]
     grads: List[torch.Tensor] | None = None
     rounded: bool = False
+    packed: torch.Tensor | None = None
+    pad: int = 0
     # padded copies of the levels, keyed by (level, pad_h, pad_w, dtype): built once when the
     # pyramid is the *next* image of an LK call and reused when it is the *previous* one
     _padded: Dict[tuple, torch.Tensor] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    @classmethod
+    def from_packed(cls, packed: torch.Tensor, height: int, width: int, max_level: int, pad: int) -> Pyramid:
+        """The pyramid of a packed ``(B, total)`` uint8 tensor (``fused/layout.py``), its levels as
+        uint8 views (no copy)."""
+        lay = PyramidLayout(height, width, max_level, pad)
+        B = packed.shape[0]
+        levels = []
+        for (h, w), o in zip(lay.sizes, lay.offsets):
+            hp, wp = h + 2 * pad, w + 2 * pad
+            block = packed[:, o:o + hp * wp].view(B, 1, hp, wp)
+            levels.append(block[..., pad:pad + h, pad:pad + w])
+        return cls(levels, None, True, packed, pad)
+
+    @property
+    def layout(self) -> PyramidLayout | None:
+        """The :class:`~torch_frontend.fused.layout.PyramidLayout` of ``packed`` (None without it)."""
+        if self.packed is None:
+            return None
+        H, W = self.levels[0].shape[-2:]
+        return PyramidLayout(int(H), int(W), self.max_level, self.pad)
 
     @property
     def max_level(self) -> int:
@@ -183,7 +215,7 @@ class Pyramid:
         """This pyramid with ``grads`` filled in: computed once if missing and cached on the object
         (a pyramid used as ``next`` of one LK call is the ``prev`` of the following one)."""
         if self.grads is None or len(self.grads) != len(self.levels):
-            self.grads = [_scharr_impl(t) for t in self.levels]
+            self.grads = [_scharr_impl(t if t.is_floating_point() else t.to(torch.float32)) for t in self.levels]
         return self
 
     def padded(self, level: int, pad_h: int, pad_w: int, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -191,13 +223,25 @@ class Pyramid:
         BORDER_REFLECT_101 (as ``buildOpticalFlowPyramid`` stores its levels), ``(B, 1, H + 2 pad_h,
         W + 2 pad_w)``. Cached on the pyramid unless the level needs a gradient (a copy padded under
         ``torch.no_grad`` would otherwise cut the gradient of a later call), or under a ``torch.func`` /
-        forward-AD transform."""
+        forward-AD transform. A packed pyramid gives its stored border (a view for uint8, one
+        conversion for another dtype) where it is wide enough."""
         t = self.levels[level]
         dtype = t.dtype if dtype is None else dtype
         key = (level, pad_h, pad_w, dtype)
         out = self._padded.get(key)
         if out is None:
-            out = pad_reflect101(t.to(dtype), pad_h, pad_w)
+            if self.packed is not None and pad_h <= self.pad and pad_w <= self.pad:
+                p = self.pad
+                h, w = t.shape[-2:]
+                lay = self.layout
+                hp, wp = lay.padded_shape(level)
+                o = lay.offsets[level]
+                block = self.packed[:, o:o + hp * wp].view(t.shape[0], 1, hp, wp)
+                out = block[..., p - pad_h:p + h + pad_h, p - pad_w:p + w + pad_w]
+                if dtype != torch.uint8:
+                    out = out.to(dtype, memory_format=torch.contiguous_format)
+            else:
+                out = pad_reflect101(t.to(dtype), pad_h, pad_w)
             # a level that carries a derivative is padded per call (a copy padded under no_grad
             # would cut a later call's gradient); one padded under a torch.func transform is that
             # transform's wrapper, which must not outlive it
@@ -208,12 +252,21 @@ class Pyramid:
     def select(self, streams) -> Pyramid:
         """The pyramid of a subset of streams (``streams``: slice / index tensor along B); cached
         padded levels come along (as views for a slice)."""
+        if self.packed is not None:
+            lay = self.layout
+            return Pyramid.from_packed(self.packed[streams], lay.height, lay.width, lay.max_level, lay.pad)
         g = None if self.grads is None else [t[streams] for t in self.grads]
         out = Pyramid([t[streams] for t in self.levels], g, self.rounded)
         out._padded = {k: v[streams] for k, v in self._padded.items()}
         return out
 
     def to(self, *args, **kwargs) -> Pyramid:
+        if self.packed is not None:
+            lay = self.layout
+            packed = self.packed.to(*args, **kwargs)
+            if packed.dtype == torch.uint8:
+                return Pyramid.from_packed(packed, lay.height, lay.width, lay.max_level, lay.pad)
+            return Pyramid([t.to(*args, **kwargs) for t in self.levels], None, self.rounded)
         g = None if self.grads is None else [t.to(*args, **kwargs) for t in self.grads]
         out = Pyramid([t.to(*args, **kwargs) for t in self.levels], g, self.rounded)
         for k, v in self._padded.items():
@@ -227,6 +280,9 @@ def build_pyramid(
     max_level: int = 3,
     with_gradients: bool = True,
     round_levels: bool | None = None,
+    *,
+    pad: int = DEFAULT_PAD,
+    backend: str | None = None,
 ) -> Pyramid:
     """Build levels ``0..max_level`` by repeated :func:`pyr_down` (``cv2.buildOpticalFlowPyramid``).
 
@@ -240,9 +296,16 @@ def build_pyramid(
             for float input (the pyramid of the float image). With a float image that requires a
             gradient the rounding is straight-through (value rounded, gradient of the unrounded
             level), as the differentiable tracker's 8-bit pyramid.
+        pad: the border stored around every level of a fused (packed) pyramid, >= 3: an LK of window
+            ``win`` reads ``max(win) + 1`` pixels out (default 22, VINS's 21 x 21 window; an LK with a
+            wider window packs the levels again).
+        backend: ``None`` / ``"auto"`` (the device's ``_tuning`` strategy), ``"fused"`` or
+            ``"tensor"``, as ``track_lk``'s ``lk_backend``: with ``"fused"``, a uint8 image with
+            ``round_levels`` is built by one custom op into a packed pyramid (``Pyramid.packed``).
 
     Returns:
-        :class:`Pyramid` with float levels (float32 for uint8 input, the input dtype otherwise).
+        :class:`Pyramid`: uint8 levels (views into ``packed``) for a uint8 image on the fused backend;
+        else float levels (float32 for uint8 input, the input dtype otherwise). The same values.
 
     Convention:
         Unlike OpenCV the levels are stored without the ``win_size`` border; the LK pads them itself
@@ -256,29 +319,46 @@ def build_pyramid(
     raw = as_image_batch(img, "img")
     if round_levels is None:
         round_levels = raw.dtype == torch.uint8
-    return _build_pyramid_impl(raw, max_level, bool(with_gradients), bool(round_levels))
+    if not isinstance(pad, int) or isinstance(pad, bool) or pad < _MIN_PACKED_PAD:
+        raise ConfigError(f"pad must be an int >= {_MIN_PACKED_PAD}, got {pad!r}")
+    return _build_pyramid_impl(raw, max_level, bool(with_gradients), bool(round_levels), pad=pad,
+                               backend=resolve_backend(backend, raw.device))
 
 
-def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool, round_levels: bool) -> Pyramid:
+# the packed pyramid's smallest border: pyrDown reads 2 pixels out, its 16-byte loads one more
+_MIN_PACKED_PAD = 3
+
+
+def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool, round_levels: bool, *,
+                        pad: int = DEFAULT_PAD, backend: str = "tensor") -> Pyramid:
     """:func:`build_pyramid` without input checks.
 
     Args:
-        img: ``(B, 1, H, W)`` uint8 or float grey levels 0..255 (uint8 is converted to float32).
+        img: ``(B, 1, H, W)`` uint8 or float grey levels 0..255 (uint8 is converted to float32 on the
+            tensor path).
         max_level: last level index, >= 0.
         with_gradients: also the Scharr ``(Ix, Iy)`` of every level.
         round_levels: round every level half up (OpenCV's 8-bit pyramid).
+        pad: the fused pyramid's stored border (``fused.lk_pad(win)`` for an LK of window ``win``).
+        backend: ``"fused"`` (resolved, :func:`~torch_frontend.fused.resolve_backend`): a uint8 image
+            with ``round_levels`` is built by the fused op into a packed pyramid (one op; uint8
+            levels, the same values); else the tensor kernels.
 
-    On the CPU a large batch without autograd is built in groups of streams
+    On the CPU the tensor path builds a large batch without autograd in groups of streams
     (``_tuning.Strategy.pyramid_streams``), so that each group's temporaries stay in cache; the
     levels are the same as in one pass.
     """
     B, _, H, W = img.shape
+    if backend == "fused" and round_levels and img.dtype == torch.uint8:
+        packed = pyramid_op(img.view(B, H, W), max_level, pad)
+        pyr = Pyramid.from_packed(packed, H, W, max_level, pad)
+        return pyr.with_gradients() if with_gradients else pyr
     strategy = _tuning.for_device(img.device)
     if strategy.pyramid_conv and round_levels and img.dtype == torch.uint8:
         return _build_pyramid_conv(img, max_level, with_gradients)
     per = strategy.pyramid_streams(B, H, W)
     if per is not None and not img.requires_grad:
-        parts = [_build_pyramid_impl(img[b0:b0 + per], max_level, with_gradients, round_levels)
+        parts = [_build_pyramid_impl(img[b0:b0 + per], max_level, with_gradients, round_levels, pad=pad)
                  for b0 in range(0, B, per)]
         levels = [torch.cat([p.levels[k] for p in parts]) for k in range(max_level + 1)]
         grads = [torch.cat([p.grads[k] for p in parts]) for k in range(max_level + 1)] if with_gradients else None

@@ -32,6 +32,7 @@ import torch
 
 from .._checks import as_image_batch, check_points, check_shape, default_valid
 from ..errors import ConfigError
+from ..fused import MIN_FUSED_WIDTH, lk_pad, resolve_backend
 from ..pyramid import Pyramid, _build_pyramid_impl
 from .capturable import _capturable_consts, _capturable_tables, _lk_capturable, exact_float32  # noqa: F401
 from .eager import _compiled_step, _lk_eager, _lk_step, _write_back  # noqa: F401
@@ -92,6 +93,7 @@ def track_lk(
     grad_mode: str = "implicit",
     compile_step=False,
     early_exit: Optional[bool] = None,
+    lk_backend: Optional[str] = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Sparse pyramidal Lucas–Kanade, as ``cv2.calcOpticalFlowPyrLK`` with the same arguments.
 
@@ -135,6 +137,13 @@ def track_lk(
         compile_step: the default path's per-iteration kernel through ``torch.compile`` for this
             call (True, or a mapping of ``torch.compile`` keywords; see :class:`LKOptions`).
         early_exit: deprecated (``DeprecationWarning``): ``capturable = not early_exit``.
+        lk_backend: ``None`` / ``"auto"`` (default: the device's ``_tuning`` strategy: the fused LK on
+            the CPU and CUDA), ``"fused"`` or ``"tensor"``. The fused LK is one custom op for the
+            whole call (both passes with ``forward_backward``), OpenCV's x86 arithmetic: status and
+            float32 positions bit-identical to ``cv2.calcOpticalFlowPyrLK`` (``docs/kernels.md``). It
+            covers 8-bit fixed point, float32 points, windows >= 8 wide; other calls (float images,
+            float64 points, ``grad_mode="unrolled"`` with a gradient) run the tensor LK, whose
+            float sums take another order (the same status on >= 99 % of EuRoC points).
 
     Returns:
         ``next_pts``: ``(B, N, 2)`` pts dtype, pixels in ``next``; ``status``: ``(B, N)`` bool.
@@ -164,7 +173,7 @@ def track_lk(
     def call(prev, next, pts, valid, init_pts):
         return _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_iters, eps,
                               min_eig_threshold, forward_backward, fb_threshold, fb_max_level, fb_use_initial_flow,
-                              fixed_point, capturable, grad_mode, compile_step)
+                              fixed_point, capturable, grad_mode, compile_step, lk_backend)
 
     if not torch.compiler.is_compiling() and has_wrapped_tensor(prev, next, pts, valid, init_pts):
         # torch.func wrappers: a vmap is folded into the call (.transforms)
@@ -177,7 +186,7 @@ def track_lk(
 
 def _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_iters, eps, min_eig_threshold,
                    forward_backward, fb_threshold, fb_max_level, fb_use_initial_flow, fixed_point, capturable,
-                   grad_mode, compile_step) -> Tuple[torch.Tensor, torch.Tensor]:
+                   grad_mode, compile_step, lk_backend=None) -> Tuple[torch.Tensor, torch.Tensor]:
     """:func:`track_lk`'s checks and calls (its arguments, in its order)."""
     check_points(pts, "pts")
     valid = default_valid(pts, valid, "valid")
@@ -190,7 +199,8 @@ def _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_it
 
         fixed_point = _is8(prev) and _is8(next)
     opts = LKOptions(win_size, max_level, max_iters, eps, min_eig_threshold, fixed_point, capturable,
-                     grad_mode=grad_mode, compile_step=compile_step)
+                     grad_mode=grad_mode, compile_step=compile_step,
+                     backend=resolve_backend(lk_backend, pts.device))
     fb_level = opts.max_level if fb_max_level is None else fb_max_level
     if not isinstance(fb_level, int) or fb_level < 0:
         raise ConfigError(f"fb_max_level must be an int >= 0, got {fb_max_level!r}")
@@ -200,19 +210,19 @@ def _track_lk_door(prev, next, pts, valid, init_pts, win_size, max_level, max_it
         nb = x.batch if isinstance(x, Pyramid) else as_image_batch(x, name).shape[0]
         if nb != B:
             raise ValueError(f"{name}: batch {nb} does not match pts batch {B}")
-    P, Q = _as_pyramid(prev, "prev", levels), _as_pyramid(next, "next", levels)
+    P, Q = _as_pyramid(prev, "prev", levels, opts), _as_pyramid(next, "next", levels, opts)
     _check_level_sizes(P, Q, levels)
-    out, status, _ = _track_lk_impl(P, Q, pts, valid, init_pts, opts)
-    if forward_backward:
-        status = _forward_backward_impl(P, Q, pts, out, status, opts, fb_level, float(fb_threshold),
-                                        bool(fb_use_initial_flow)).status
+    fb = (fb_level, float(fb_threshold), bool(fb_use_initial_flow)) if forward_backward else None
+    out, status, _ = _track_lk_impl(P, Q, pts, valid, init_pts, opts, fb=fb)
     return out, status
 
 
-def _as_pyramid(x: ImageOrPyramid, name: str, levels: int) -> Pyramid:
+def _as_pyramid(x: ImageOrPyramid, name: str, levels: int, opts: LKOptions) -> Pyramid:
     if isinstance(x, Pyramid):
         return x
-    return _build_pyramid_impl(as_image_batch(x, name), levels, False, x.dtype == torch.uint8)
+    img = as_image_batch(x, name)
+    return _build_pyramid_impl(img, levels, False, img.dtype == torch.uint8, pad=lk_pad(opts.win_size),
+                               backend=opts.backend if opts.win_size[0] >= MIN_FUSED_WIDTH else "tensor")
 
 
 def _check_level_sizes(prev: Pyramid, nxt: Pyramid, levels: int) -> None:

@@ -71,10 +71,16 @@ class LKOptions:
             mapping of ``torch.compile`` keywords with hashable values; ``dynamic=True`` unless
             given); normalised to False or the sorted keyword pairs. The same values; no effect on
             the capturable path (compile the whole call there).
+        backend: ``"fused"``: the calls these options cover run the fused LK (one custom op,
+            OpenCV's bits; ``fused/``); ``"tensor"`` (default): the tensor LK. A resolved backend
+            (:func:`torch_frontend.fused.resolve_backend`): ``track_lk`` and ``FeatureTracker``
+            resolve ``lk_backend`` once. The fused LK covers 8-bit fixed point, float32 points, no
+            ``iter_budget``, windows >= 8 wide and no unrolled gradient; any other call runs the
+            tensor LK.
 
     Raises:
         ConfigError: a window <= 2, a negative / non-int ``max_level`` or ``iter_budget``, an
-            unknown ``grad_mode``, ``compile_step`` keywords that are not hashable.
+            unknown ``grad_mode`` or ``backend``, ``compile_step`` keywords that are not hashable.
     """
 
     win_size: Tuple[int, int] = (21, 21)
@@ -88,6 +94,7 @@ class LKOptions:
     tail_share: int = 8
     grad_mode: str = "implicit"
     compile_step: Any = False
+    backend: str = "tensor"
 
     def __post_init__(self):
         if self.grad_mode not in GRAD_MODES:
@@ -102,6 +109,8 @@ class LKOptions:
                       eps=min(max(float(self.eps), 0.0), 10.0), min_eig_threshold=float(self.min_eig_threshold),
                       fixed_point=bool(self.fixed_point), capturable=bool(self.capturable),
                       compile_step=_compile_items(self.compile_step))
+        if self.backend not in ("fused", "tensor"):
+            raise ConfigError(f"LKOptions.backend must be 'fused' or 'tensor' (resolved), got {self.backend!r}")
         if isinstance(self.tail_share, bool) or not isinstance(self.tail_share, int) or self.tail_share < 1:
             raise ConfigError(f"tail_share must be an int >= 1, got {self.tail_share!r}")
         b = self.iter_budget

@@ -19,6 +19,7 @@ from .. import _tuning
 from ..pyramid import Pyramid
 from .capturable import _lk_capturable
 from .eager import _lk_eager
+from .fused_path import FBArgs, fused_applies, lk_fused
 from .implicit import _detached, _implicit_attach, _levels_have_tangent, _wants_grad
 from .options import LKOptions
 
@@ -86,8 +87,9 @@ def _track_lk_impl(
     opts: LKOptions,
     *,
     capturable: Optional[bool] = None,
+    fb: Optional[FBArgs] = None,
 ) -> LKResult:
-    """Forward LK (:func:`~torch_frontend.track_lk` without the backward check), no input checks.
+    """Forward LK (:func:`~torch_frontend.track_lk`), no input checks; with ``fb`` its backward check too.
 
     Args:
         prev, next: pyramids of the B streams, with equal level sizes (as many levels as
@@ -97,6 +99,9 @@ def _track_lk_impl(
         init_pts: ``(B, N, 2)`` initial guess in ``next``, or None (start at ``pts``).
         opts: :class:`LKOptions`.
         capturable: the path; None (default) takes ``opts.capturable``. The same results on both.
+        fb: ``(fb_max_level, fb_threshold, fb_use_initial_flow)``: also VINS-Fusion's FLOW_BACK check
+            (:func:`_forward_backward_impl`'s), in the same op on the fused path; ``status`` is then
+            the checked one and ``overflow`` both passes' flag.
 
     Returns:
         :class:`LKResult` ``(pts, status, overflow)``.
@@ -111,7 +116,12 @@ def _track_lk_impl(
     graph, then the implicit-function gradient (the same values).
     """
     cap = opts.capturable if capturable is None else bool(capturable)
-    out, status, overflow, _ = _lk_pass(prev, next, pts, valid, init_pts, opts, cap)
+    if fb is not None and not fused_applies(prev, next, pts, init_pts, opts):
+        out, status, overflow, _ = _lk_pass(prev, next, pts, valid, init_pts, opts, cap)
+        status, of_b = _forward_backward_impl(prev, next, pts, out, status, opts, fb[0], float(fb[1]), bool(fb[2]),
+                                              capturable=cap)
+        return LKResult(out, status, of_b if overflow is None else (overflow if of_b is None else overflow | of_b))
+    out, status, overflow, _ = _lk_pass(prev, next, pts, valid, init_pts, opts, cap, fb=fb)
     return LKResult(out, status, overflow)
 
 
@@ -151,13 +161,17 @@ def _forward_backward_impl(
 
 
 def _lk_pass(prev: Pyramid, next: Pyramid, pts: torch.Tensor, valid: torch.Tensor, init_pts: Optional[torch.Tensor],
-             opts: LKOptions, capturable: bool, want_capped: bool = False):
+             opts: LKOptions, capturable: bool, want_capped: bool = False, fb: Optional[FBArgs] = None):
     """:func:`_track_lk_impl` as ``(pts, status, overflow, capped)``: with ``want_capped`` the
     ``(B N,)`` bool mask of the lanes still iterating when level 0's budget ended (for the implicit
-    gradient; else None)."""
+    gradient; else None). ``fb``: the fused path's forward-backward check (callers pass it only when
+    :func:`.fused_path.fused_applies`)."""
     if opts.grad_mode == "implicit" and _wants_grad(prev, next, pts, init_pts):
-        return _lk_pass_implicit(prev, next, pts, valid, init_pts, opts, capturable)
+        return _lk_pass_implicit(prev, next, pts, valid, init_pts, opts, capturable, fb)
     top = _level_cap(prev, next, opts.max_level, opts.win_size)
+    if fused_applies(prev, next, pts, init_pts, opts):
+        fbt = None if fb is None else (_level_cap(next, prev, fb[0], opts.win_size), float(fb[1]), bool(fb[2]))
+        return lk_fused(prev, next, pts, valid, init_pts, opts, top, capturable, want_capped, fbt)
     B, N = pts.shape[:2]
     if init_pts is not None:
         # a non-finite guess (a NaN prediction) would index outside the image: its lane is not
@@ -189,7 +203,7 @@ def _lk_pass(prev: Pyramid, next: Pyramid, pts: torch.Tensor, valid: torch.Tenso
 
 
 def _lk_pass_implicit(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, valid: torch.Tensor,
-                      init: Optional[torch.Tensor], opts: LKOptions, capturable: bool):
+                      init: Optional[torch.Tensor], opts: LKOptions, capturable: bool, fb: Optional[FBArgs] = None):
     """:func:`_lk_pass` with ``grad_mode="implicit"``: the forward without a graph (the same code, so
     the same values), then :func:`.implicit._implicit_attach` on the lanes with status True that did
     not hit level 0's iteration budget."""
@@ -198,7 +212,8 @@ def _lk_pass_implicit(prev: Pyramid, nxt: Pyramid, pts: torch.Tensor, valid: tor
         P, Q = _detached(prev), _detached(nxt)
     with torch.no_grad():
         out, status, overflow, capped = _lk_pass(P, Q, pts.detach(), valid, None if init is None else init.detach(),
-                                                 dataclasses.replace(opts, grad_mode="unrolled"), capturable, True)
+                                                 dataclasses.replace(opts, grad_mode="unrolled"), capturable, True, fb)
     cap = torch.zeros_like(status) if capped is None else capped.view(status.shape)
+    # the forward's own status (with fb the checked one: a lane that fails the check gets no gradient)
     out, _ = _implicit_attach(prev, nxt, pts, out, status & ~cap, opts)
     return out, status, overflow, None

@@ -26,6 +26,7 @@ import torch.utils._pytree as pytree
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
+from ..fused import resolve_backend
 from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
@@ -228,6 +229,11 @@ class FeatureTracker:
         grad_mode: differentiable only: LK's gradient, ``"implicit"`` (default: implicit-function
             gradient of the converged level-0 solution, zero for lost lanes, memory independent of
             the iterations) or ``"unrolled"`` (through every iteration).
+        lk_backend: the pyramid's and the LK's kernels: None / ``"auto"`` (default: the device's
+            ``_tuning`` strategy: the fused kernels on the CPU and CUDA, one custom op each, status
+            and positions bit-identical to OpenCV's ``calcOpticalFlowPyrLK``), ``"fused"`` (an error
+            where they cannot run) or ``"tensor"`` (the tensor kernels). Resolved once here
+            (``self.lk_backend``); checkpoints record it (``state_dict``). ``docs/kernels.md``.
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
@@ -255,6 +261,7 @@ class FeatureTracker:
         lk_tail_share: int = 8,
         differentiable: bool = False,
         grad_mode: str = "implicit",
+        lk_backend: Optional[str] = None,
     ):
         configs = stream_configs(config, num_streams)  # B configs; one given is every stream's
         for c in configs:
@@ -269,8 +276,11 @@ class FeatureTracker:
         self.capturable = bool(capturable)
         self.differentiable = bool(differentiable)
         masks = self._stream_masks(fisheye_mask)
+        #: the pyramid's and the LK's kernels, ``"fused"`` or ``"tensor"`` (resolved for this device)
+        self.lk_backend = resolve_backend(lk_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
-                       lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode)
+                       lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
+                       lk_backend=self.lk_backend)
         built: Dict[Tuple[int, int], TrackerParams] = {}
         for b, c in enumerate(configs):
             if (id(c), id(masks[b])) not in built:
@@ -287,7 +297,7 @@ class FeatureTracker:
             # per-stream configs: one homogeneous tracker per group of equal configs (tracker.streams)
             kwargs = dict(device=self.device, mode=mode, dtype=dtype, seed=seed, capturable=self.capturable,
                           lk_iter_budget=lk_iter_budget, lk_tail_share=lk_tail_share,
-                          differentiable=self.differentiable, grad_mode=grad_mode)
+                          differentiable=self.differentiable, grad_mode=grad_mode, lk_backend=self.lk_backend)
             self._groups = tuple(groups)
             self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
                                                  **kwargs) for g in groups)

@@ -59,6 +59,9 @@ class TrackerParams:
         lk_grad_mode: differentiable only: LK's ``grad_mode``, ``"implicit"`` (default: the
             implicit-function gradient of the converged level-0 solution, memory independent of
             the iterations, zero for lost lanes) or ``"unrolled"`` (every iteration, as computed).
+        lk_backend: the pyramid's and the LK's kernels, resolved (``fused.resolve_backend``):
+            ``"fused"`` (one custom op each, OpenCV's bits; ``FeatureTracker``'s default on the CPU
+            and CUDA) or ``"tensor"`` (the tensor kernels; the default of params built by hand).
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -80,6 +83,7 @@ class TrackerParams:
     capturable: bool = False
     differentiable: bool = False
     lk_grad_mode: str = "implicit"
+    lk_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream
@@ -166,7 +170,8 @@ class TrackerParams:
                 object.__setattr__(self, "lk_compile_step", LKOptions(compile_step=self.lk_compile_step).compile_step)
             self.lk_options, self.lk_short_options, self.lk_stereo_options  # noqa: B018
         except ConfigError as exc:  # name the tracker's field, not LKOptions'
-            raise ConfigError(f"lk_iter_budget / lk_tail_share / lk_grad_mode / lk_compile_step / lk_*: {exc}") from None
+            raise ConfigError(f"lk_iter_budget / lk_tail_share / lk_grad_mode / lk_compile_step / lk_backend / lk_*: "
+                              f"{exc}") from None
 
     def check_image_size(self, height: int, width: int) -> None:
         """The kernels' size checks for ``height x width`` images (the step calls the kernels
@@ -218,7 +223,7 @@ class TrackerParams:
                          fixed_point=True, capturable=self.capturable, iter_budget=self.lk_iter_budget,
                          tail_share=self.lk_tail_share,
                          grad_mode=self.lk_grad_mode if self.differentiable else "unrolled",
-                         compile_step=self.lk_compile_step)
+                         compile_step=self.lk_compile_step, backend=self.lk_backend)
 
     @functools.cached_property
     def lk_short_options(self) -> LKOptions:

@@ -28,6 +28,7 @@ from .._checks import gather_slots
 from .._compiler import constant_result
 from ..corners import _good_features_impl
 from ..equalize import _clahe_impl, _clahe_straight_through
+from ..fused import lk_pad
 from ..lk import _forward_backward_impl, _track_lk_impl
 from ..masks import _distance_mask_impl
 from ..pyramid import Pyramid, _build_pyramid_impl
@@ -74,7 +75,8 @@ def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
     """The LK pyramid of an 8-bit image: levels rounded as OpenCV's 8-bit ``pyrDown`` (LK fidelity);
     no full-image derivatives (the LK takes them from the windows it reads). A float32 image of
     the differentiable step gives the same levels, its rounding straight-through."""
-    return _build_pyramid_impl(img, params.lk_max_level, with_gradients=False, round_levels=True)
+    return _build_pyramid_impl(img, params.lk_max_level, with_gradients=False, round_levels=True,
+                               pad=lk_pad(params.lk_options.win_size), backend=params.lk_backend)
 
 
 def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid], capturable: bool = False) -> Pyramid:
@@ -83,6 +85,10 @@ def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid], capturabl
     per-stream select (no sync), the padded levels cached on both selected as well."""
     if old is None or (not capturable and bool(mask.all())):
         return new
+    if new.packed is not None and old.packed is not None and new.layout == old.layout:  # one select
+        lay = new.layout
+        return Pyramid.from_packed(where_streams(mask, new.packed, old.packed), lay.height, lay.width, lay.max_level,
+                                   lay.pad)
     out = Pyramid(levels=[where_streams(mask, n, o) for n, o in zip(new.levels, old.levels)], rounded=new.rounded)
     if capturable:
         # the LK pads the next image's levels once and reuses them when it is the previous image;

@@ -124,14 +124,22 @@ def _register_dataclass(cls) -> None:
 
 
 def _register_pyramid() -> None:
-    """``Pyramid`` as a pytree node: its levels (and gradients) are the children; the padded-level
-    cache is a memo and is not carried through flatten/unflatten."""
+    """``Pyramid`` as a pytree node: a packed pyramid's one child is its packed tensor (the levels are
+    views into it, rebuilt on unflatten), context ``[rounded, height, width, max_level, pad]``;
+    otherwise its levels (and gradients), context ``rounded``. The padded-level cache is a memo and
+    is not carried through flatten/unflatten."""
     def flatten(p):
+        if p.packed is not None:
+            lay = p.layout
+            return [p.packed], [p.rounded, lay.height, lay.width, lay.max_level, lay.pad]
         return [p.levels, p.grads], p.rounded
 
-    def unflatten(values, rounded):
+    def unflatten(values, context):
+        if isinstance(context, (list, tuple)):  # packed (a list after treespec_loads)
+            _, H, W, L, pad = context
+            return Pyramid.from_packed(values[0], H, W, L, pad)
         levels, grads = values
-        return Pyramid(list(levels), None if grads is None else list(grads), rounded)
+        return Pyramid(list(levels), None if grads is None else list(grads), context)
 
     pytree.register_pytree_node(Pyramid, flatten, unflatten, serialized_type_name="torch_frontend.pyramid.Pyramid")
 

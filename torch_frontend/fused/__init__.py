@@ -1,0 +1,116 @@
+"""The fused-kernel layer: OpenCV's pyramid and pyramidal LK each as one custom op (``docs/kernels.md``).
+
+Eager tensor ops write every intermediate to memory; an iterative per-point stage such as the LK's
+iterations is then bound by op launches and memory passes, and its float sums are taken in another
+order than OpenCV's. Here each stage is one ``torch.library.custom_op`` (:mod:`.ops`) with a CPU
+kernel in numba (:mod:`._numba_lk`, :mod:`._numba_pyramid`: OpenCV's x86 arithmetic line by line,
+bit-identical to ``cv2.calcOpticalFlowPyrLK``) and a CUDA kernel in Triton (:mod:`._triton_lk`,
+:mod:`._triton_pyramid`: the same lane-by-lane contract); the tensor kernels (``lk/``, ``pyramid``)
+stay as the readable reference, the fallback and the differentiable (``grad_mode="unrolled"``) path.
+
+Which LK a device runs is a ``_tuning`` strategy (``Strategy.lk_backend``: ``"fused"`` on the CPU
+and CUDA, ``"tensor"`` elsewhere), overridden per call (``track_lk(lk_backend=...)``) or per tracker
+(``FeatureTracker(..., lk_backend=...)``); :func:`resolve_backend` turns a request into the backend
+used. The fused LK covers OpenCV's 8-bit fixed-point setting (``fixed_point``, float32 points, the
+full iteration count, windows at least 8 pixels wide); other settings run the tensor LK.
+
+Availability: the CPU kernels need numba (a core dependency; if it cannot load, the tensor LK runs
+and one warning says why); CUDA needs Triton and passes a self-check against stored bits first
+(:mod:`.selfcheck`, run outside any capture). A cuda-labelled tensor without a CUDA runtime (the
+simulated device of ``count_step.py``, fake tensors) runs the op through its CPU kernel.
+"""
+
+from __future__ import annotations
+
+import threading
+import warnings
+from typing import Optional
+
+import torch
+
+from ..errors import ConfigError
+from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
+
+__all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
+           "MIN_FUSED_WIDTH"]
+
+#: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
+BACKENDS = ("auto", "fused", "tensor")
+
+#: the fused LK's narrowest window: its kernels read window rows in 8-pixel blocks
+MIN_FUSED_WIDTH = 8
+
+_LOCK = threading.Lock()
+_STATUS: dict = {}   # device kind -> None (available) or why not; filled once per kind
+_WARNED: set = set()
+
+
+def _probe(kind: str) -> Optional[str]:
+    if kind == "cpu":
+        try:
+            import numba  # noqa: F401
+
+            from . import _numba_lk, _numba_pyramid  # noqa: F401
+        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor LK
+            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return None
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            return None  # cuda-labelled tensors without a runtime (simulated device, fakes): the CPU kernel runs
+        try:
+            import triton  # noqa: F401
+
+            from . import _triton_lk, _triton_pyramid  # noqa: F401
+        except Exception as e:  # noqa: BLE001
+            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        from .selfcheck import cuda_selfcheck
+
+        return cuda_selfcheck()
+    return f"no fused kernel for device type {kind!r}"
+
+
+def unavailable_reason(device) -> Optional[str]:
+    """Why the fused kernels cannot run on ``device`` (a ``torch.device`` or string), or None when they
+    can. Probed once per device type (CUDA: Triton importable and the self-check passed)."""
+    kind = torch.device(device).type
+    with _LOCK:
+        if kind in _STATUS:
+            return _STATUS[kind]
+    why = _probe(kind)
+    with _LOCK:
+        _STATUS.setdefault(kind, why)
+        return _STATUS[kind]
+
+
+def warn_once(message: str) -> None:
+    """``warnings.warn(message)`` the first time this message is seen in the process."""
+    with _LOCK:
+        if message in _WARNED:
+            return
+        _WARNED.add(message)
+    warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def resolve_backend(requested: Optional[str], device) -> str:
+    """The LK backend (``"fused"`` or ``"tensor"``) a call on ``device`` runs for ``requested``:
+    ``None`` / ``"auto"``: the device's ``_tuning`` strategy, falling back to the tensor LK with one
+    warning when the fused kernels cannot run there; ``"fused"``: the fused kernels or a
+    ``ConfigError`` saying why not; ``"tensor"``: the tensor LK."""
+    from .. import _tuning
+
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"lk_backend must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and _tuning.for_device(dev).lk_backend != "fused":
+        return "tensor"
+    why = unavailable_reason(dev)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"lk_backend='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused LK cannot run on {dev.type} ({why}); the tensor LK runs instead "
+              "(the same results up to OpenCV's float summation order, docs/kernels.md)")
+    return "tensor"

@@ -1,0 +1,165 @@
+"""The fused kernels as ``torch.library`` custom ops: one op per call, on every device and under every
+tool (``docs/kernels.md``).
+
+* ``torch_frontend::pyramid(img, max_level, pad) -> packed``: the packed 8-bit pyramid
+  (:mod:`.layout`) of ``(B, H, W)`` uint8 images.
+* ``torch_frontend::lk(prev, next, pts, valid, init, ...) -> (next_pts, status, capped)``: every level
+  and iteration of OpenCV's pyramidal LK for every stream and point, optionally with VINS-Fusion's
+  forward-backward check, on two packed pyramids.
+
+Each op is a plain ``torch.library.custom_op`` with a hand-written fake (shapes only: ``torch.compile``
+and the meta device trace it as one node), a CPU kernel (numba, :mod:`._numba_lk`,
+:mod:`._numba_pyramid`) and a CUDA kernel (``register_kernel("cuda")``, Triton through
+``torch.library.wrap_triton``, :mod:`._triton_lk`, :mod:`._triton_pyramid`). Not ``triton_op``: that
+makes the Triton body the op's fake and decomposition on every device, so CPU ``compile()`` would
+trace Triton and a CPU-only install would need it. CUDA graphs, ``OpCounter`` and the simulated CUDA
+device of ``count_step.py`` see one op per call (the simulated device runs the CPU kernel).
+
+The CPU kernels take numpy views of the tensors (``np.from_dlpack``: no copy, no host sync on the
+counters) and run with the GIL released (``nogil``): with more than one torch thread
+(``torch.get_num_threads()``, the product's thread policy) the streams are split into groups run
+by a small thread pool; each stream's result does not depend on the grouping.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+
+from .layout import PyramidLayout
+
+__all__ = ["pyramid_op", "lk_op", "layout_arrays"]
+
+Tensor = torch.Tensor
+
+# the CPU kernels' thread pool: created on first use with the torch thread count, recreated when
+# that count changes, dropped in a forked child (its threads do not exist there)
+_POOL: list = [None, 0]
+_POOL_LOCK = threading.Lock()
+
+
+def _reset_pool() -> None:
+    _POOL[0], _POOL[1] = None, 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_reset_pool)
+
+
+def _run_groups(fn, B: int) -> None:
+    """``fn(s0, s1)`` over stream groups: one call on one thread, else ``torch.get_num_threads()``
+    contiguous groups run by the pool (the kernels release the GIL)."""
+    threads = min(torch.get_num_threads(), B)
+    if threads <= 1:
+        fn(0, B)
+        return
+    with _POOL_LOCK:
+        if _POOL[0] is None or _POOL[1] != threads:
+            if _POOL[0] is not None:
+                _POOL[0].shutdown(wait=False)
+            _POOL[0], _POOL[1] = ThreadPoolExecutor(threads, thread_name_prefix="torch_frontend_fused"), threads
+        pool = _POOL[0]
+    bounds = [B * k // threads for k in range(threads + 1)]
+    for f in [pool.submit(fn, bounds[k], bounds[k + 1]) for k in range(threads) if bounds[k + 1] > bounds[k]]:
+        f.result()
+
+
+def layout_arrays(height: int, width: int, max_level: int, pad: int):
+    """``(sizes (L + 1, 2), offsets (L + 1,), origins (L + 1,), pitches (L + 1,))`` int64 numpy arrays of a
+    :class:`~.layout.PyramidLayout`: level sizes, block offsets, the element of pixel (0, 0), row pitches."""
+    lay = PyramidLayout(height, width, max_level, pad)
+    sizes = np.array(lay.sizes, dtype=np.int64)
+    offs = np.array(lay.offsets, dtype=np.int64)
+    pitch = sizes[:, 1] + 2 * pad
+    return sizes, offs, offs + pad * pitch + pad, pitch
+
+
+def _np(t: Tensor) -> np.ndarray:
+    """A numpy view of a contiguous CPU tensor (bool as bool)."""
+    return np.from_dlpack(t.detach())
+
+
+# ---------------------------------------------------------------------------------------------
+# pyramid
+
+
+@torch.library.custom_op("torch_frontend::pyramid", mutates_args=(), device_types="cpu")
+def pyramid_op(img: Tensor, max_level: int, pad: int) -> Tensor:
+    """The packed pyramid ``(B, total)`` uint8 of ``img (B, H, W)`` uint8 (CPU kernel: numba)."""
+    from ._numba_pyramid import pyramid_streams
+
+    B, H, W = img.shape
+    sizes, offs, _, _ = layout_arrays(H, W, max_level, pad)
+    out = torch.empty((B, int(PyramidLayout(H, W, max_level, pad).total)), dtype=torch.uint8, device=img.device)
+    src, dst = _np(img.contiguous()), _np(out)
+    _run_groups(lambda s0, s1: pyramid_streams(src, dst, sizes, offs, pad, s0, s1), B)
+    return out
+
+
+@pyramid_op.register_fake
+def _pyramid_fake(img, max_level, pad):
+    B, H, W = img.shape
+    return img.new_empty((B, PyramidLayout(int(H), int(W), max_level, pad).total), dtype=torch.uint8)
+
+
+@pyramid_op.register_kernel("cuda")
+def _pyramid_cuda(img, max_level, pad):
+    from ._triton_pyramid import pyramid_cuda
+
+    return pyramid_cuda(img.contiguous(), max_level, pad)
+
+
+# ---------------------------------------------------------------------------------------------
+# LK
+
+
+@torch.library.custom_op("torch_frontend::lk", mutates_args=(), device_types="cpu")
+def lk_op(prev: Tensor, next: Tensor, pts: Tensor, valid: Tensor, init: Optional[Tensor], height: int, width: int,
+          pad_prev: int, pad_next: int, top: int, win_w: int, win_h: int, max_iters: int, eps: float,
+          min_eig: float, fb_top: int, fb_threshold: float, fb_from_pts: bool) -> Tuple[Tensor, Tensor, Tensor]:
+    """OpenCV's pyramidal LK of ``pts (B, N, 2)`` float32 from the packed pyramid ``prev`` into ``next``
+    (``(B, total)`` uint8, pads ``pad_prev`` / ``pad_next``, level 0 ``height x width``), levels
+    ``top..0``; ``fb_top >= 0``: also VINS-Fusion's FLOW_BACK check. Returns ``(next_pts (B, N, 2)
+    float32, status (B, N) bool, capped (B, N) bool)``. CPU kernel: numba."""
+    from ._numba_lk import lk_streams
+
+    B, N, _ = pts.shape
+    levels = max(top, fb_top)
+    sizes, _, org_p, wp_p = layout_arrays(height, width, levels, pad_prev)
+    _, _, org_n, wp_n = layout_arrays(height, width, levels, pad_next)
+    out = torch.empty((B, N, 2), dtype=torch.float32, device=pts.device)
+    status = torch.empty((B, N), dtype=torch.bool, device=pts.device)
+    capped = torch.empty((B, N), dtype=torch.bool, device=pts.device)
+    P, Q, p, v = _np(prev.contiguous()), _np(next.contiguous()), _np(pts.contiguous()), _np(valid.contiguous())
+    g = _np(init.contiguous()) if init is not None else np.zeros((1, 1, 2), dtype=np.float32)
+    o, s, c = _np(out), _np(status), _np(capped)
+
+    def run(s0, s1):
+        lk_streams(P, Q, org_p, wp_p, org_n, wp_n, sizes, p, v, g, init is not None, top, win_w, win_h, max_iters,
+                   eps, min_eig, fb_top, fb_threshold, fb_from_pts, o, s, c, s0, s1)
+
+    _run_groups(run, B)
+    return out, status, capped
+
+
+@lk_op.register_fake
+def _lk_fake(prev, next, pts, valid, init, height, width, pad_prev, pad_next, top, win_w, win_h, max_iters, eps,
+             min_eig, fb_top, fb_threshold, fb_from_pts):
+    B, N = pts.shape[:2]
+    return (pts.new_empty((B, N, 2)), valid.new_empty((B, N), dtype=torch.bool),
+            valid.new_empty((B, N), dtype=torch.bool))
+
+
+@lk_op.register_kernel("cuda")
+def _lk_cuda(prev, next, pts, valid, init, height, width, pad_prev, pad_next, top, win_w, win_h, max_iters, eps,
+             min_eig, fb_top, fb_threshold, fb_from_pts):
+    from ._triton_lk import lk_cuda
+
+    return lk_cuda(prev.contiguous(), next.contiguous(), pts.contiguous(), valid.contiguous(),
+                   None if init is None else init.contiguous(), height, width, pad_prev, pad_next, top, win_w, win_h,
+                   max_iters, eps, min_eig, fb_top, fb_threshold, fb_from_pts)
