@@ -68,7 +68,7 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
                 "camera": "--camera", "workers": "--workers"}
 _TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
-                "checkpoint_every": "--checkpoint-every", "resume": "--resume"}
+                "checkpoint_every": "--checkpoint-every", "resume": "--resume", "lk_backend": "--lk-backend"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
 _LOOP_FLAGS = {
     **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
@@ -330,7 +330,8 @@ def _cmd_track(args: argparse.Namespace) -> int:
     _check_inputs(config, sources, "--euroc DIR, --bag PATH, --images DIR or --rig FILE")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
-                       bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume)
+                       bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume,
+                       lk_backend=args.lk_backend)
     config = _resolved_config(config, sources, opt)
     if _sharded():
         from .pipelines.sharded import run_track_sharded
@@ -523,6 +524,9 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str | None) -> Non
                    help="stop after N frames per stream")
     p.add_argument("--no-tracks", action="store_true", help="do not draw track images (tracks/)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--lk-backend", choices=("auto", "fused", "tensor"), default=None,
+                   help="the pyramid's and the LK's kernels (default auto: the fused kernels on the CPU and CUDA, "
+                        "OpenCV's bits; tensor: the tensor kernels; docs/kernels.md)")
     _add_threads(p)
 
 

@@ -7,13 +7,19 @@ tool (``docs/kernels.md``).
   and iteration of OpenCV's pyramidal LK for every stream and point, optionally with VINS-Fusion's
   forward-backward check, on two packed pyramids.
 
-Each op is a plain ``torch.library.custom_op`` with a hand-written fake (shapes only: ``torch.compile``
-and the meta device trace it as one node), a CPU kernel (numba, :mod:`._numba_lk`,
-:mod:`._numba_pyramid`) and a CUDA kernel (``register_kernel("cuda")``, Triton through
+Each op is a plain ``torch.library`` operator (``torch.library.define`` with its schema) with a
+hand-written fake (``register_fake``: shapes only, so ``torch.compile`` and the meta device trace it
+as one node), a CPU kernel (``torch.library.impl(..., "cpu")``: numba, :mod:`._numba_lk`,
+:mod:`._numba_pyramid`) and a CUDA kernel (``impl(..., "cuda")``: Triton through
 ``torch.library.wrap_triton``, :mod:`._triton_lk`, :mod:`._triton_pyramid`). Not ``triton_op``: that
 makes the Triton body the op's fake and decomposition on every device, so CPU ``compile()`` would
-trace Triton and a CPU-only install would need it. CUDA graphs, ``OpCounter`` and the simulated CUDA
-device of ``count_step.py`` see one op per call (the simulated device runs the CPU kernel).
+trace Triton and a CPU-only install would need it. Not the ``torch.library.custom_op`` decorator
+either, although it registers the same kind of operator: its Python wrapper imports ``torch._dynamo``
+on a process's first call (3.1 s, measured: every CLI run and test worker would pay it) and costs
+~40 µs a call against ~8 here. CUDA graphs, ``OpCounter`` and the simulated CUDA device of
+``count_step.py`` see one op per call (the simulated device runs the CPU kernel). No autograd
+formula: the callers run the ops on detached inputs (the LK's gradient is implicit, attached after
+the forward, ``lk/implicit.py``).
 
 The CPU kernels take numpy views of the tensors (``np.from_dlpack``: no copy, no host sync on the
 counters) and run with the GIL released (``nogil``): with more than one torch thread
@@ -88,8 +94,11 @@ def _np(t: Tensor) -> np.ndarray:
 # pyramid
 
 
-@torch.library.custom_op("torch_frontend::pyramid", mutates_args=(), device_types="cpu")
-def pyramid_op(img: Tensor, max_level: int, pad: int) -> Tensor:
+torch.library.define("torch_frontend::pyramid", "(Tensor img, int max_level, int pad) -> Tensor")
+
+
+@torch.library.impl("torch_frontend::pyramid", "cpu")
+def _pyramid_cpu(img: Tensor, max_level: int, pad: int) -> Tensor:
     """The packed pyramid ``(B, total)`` uint8 of ``img (B, H, W)`` uint8 (CPU kernel: numba)."""
     from ._numba_pyramid import pyramid_streams
 
@@ -101,13 +110,13 @@ def pyramid_op(img: Tensor, max_level: int, pad: int) -> Tensor:
     return out
 
 
-@pyramid_op.register_fake
+@torch.library.register_fake("torch_frontend::pyramid")
 def _pyramid_fake(img, max_level, pad):
     B, H, W = img.shape
     return img.new_empty((B, PyramidLayout(int(H), int(W), max_level, pad).total), dtype=torch.uint8)
 
 
-@pyramid_op.register_kernel("cuda")
+@torch.library.impl("torch_frontend::pyramid", "cuda")
 def _pyramid_cuda(img, max_level, pad):
     from ._triton_pyramid import pyramid_cuda
 
@@ -118,10 +127,17 @@ def _pyramid_cuda(img, max_level, pad):
 # LK
 
 
-@torch.library.custom_op("torch_frontend::lk", mutates_args=(), device_types="cpu")
-def lk_op(prev: Tensor, next: Tensor, pts: Tensor, valid: Tensor, init: Optional[Tensor], height: int, width: int,
-          pad_prev: int, pad_next: int, top: int, win_w: int, win_h: int, max_iters: int, eps: float,
-          min_eig: float, fb_top: int, fb_threshold: float, fb_from_pts: bool) -> Tuple[Tensor, Tensor, Tensor]:
+torch.library.define(
+    "torch_frontend::lk",
+    "(Tensor prev, Tensor next, Tensor pts, Tensor valid, Tensor? init, int height, int width, int pad_prev, "
+    "int pad_next, int top, int win_w, int win_h, int max_iters, float eps, float min_eig, int fb_top, "
+    "float fb_threshold, bool fb_from_pts) -> (Tensor, Tensor, Tensor)")
+
+
+@torch.library.impl("torch_frontend::lk", "cpu")
+def _lk_cpu(prev: Tensor, next: Tensor, pts: Tensor, valid: Tensor, init: Optional[Tensor], height: int, width: int,
+            pad_prev: int, pad_next: int, top: int, win_w: int, win_h: int, max_iters: int, eps: float,
+            min_eig: float, fb_top: int, fb_threshold: float, fb_from_pts: bool) -> Tuple[Tensor, Tensor, Tensor]:
     """OpenCV's pyramidal LK of ``pts (B, N, 2)`` float32 from the packed pyramid ``prev`` into ``next``
     (``(B, total)`` uint8, pads ``pad_prev`` / ``pad_next``, level 0 ``height x width``), levels
     ``top..0``; ``fb_top >= 0``: also VINS-Fusion's FLOW_BACK check. Returns ``(next_pts (B, N, 2)
@@ -147,7 +163,7 @@ def lk_op(prev: Tensor, next: Tensor, pts: Tensor, valid: Tensor, init: Optional
     return out, status, capped
 
 
-@lk_op.register_fake
+@torch.library.register_fake("torch_frontend::lk")
 def _lk_fake(prev, next, pts, valid, init, height, width, pad_prev, pad_next, top, win_w, win_h, max_iters, eps,
              min_eig, fb_top, fb_threshold, fb_from_pts):
     B, N = pts.shape[:2]
@@ -155,7 +171,7 @@ def _lk_fake(prev, next, pts, valid, init, height, width, pad_prev, pad_next, to
             valid.new_empty((B, N), dtype=torch.bool))
 
 
-@lk_op.register_kernel("cuda")
+@torch.library.impl("torch_frontend::lk", "cuda")
 def _lk_cuda(prev, next, pts, valid, init, height, width, pad_prev, pad_next, top, win_w, win_h, max_iters, eps,
              min_eig, fb_top, fb_threshold, fb_from_pts):
     from ._triton_lk import lk_cuda
@@ -163,3 +179,8 @@ def _lk_cuda(prev, next, pts, valid, init, height, width, pad_prev, pad_next, to
     return lk_cuda(prev.contiguous(), next.contiguous(), pts.contiguous(), valid.contiguous(),
                    None if init is None else init.contiguous(), height, width, pad_prev, pad_next, top, win_w, win_h,
                    max_iters, eps, min_eig, fb_top, fb_threshold, fb_from_pts)
+
+
+#: the ops (``torch.ops.torch_frontend.*``): ``pyramid_op(img, max_level, pad)``, ``lk_op(prev, next, ...)``
+pyramid_op = torch.ops.torch_frontend.pyramid
+lk_op = torch.ops.torch_frontend.lk

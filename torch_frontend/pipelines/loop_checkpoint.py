@@ -108,6 +108,9 @@ def loop_fingerprint(cfg, sources: Sequence[Any], seqs: Sequence[Any], poses: Se
         v = getattr(opt, f.name)
         options[f.name] = v if isinstance(v, (bool, int, float, str, type(None))) else _value_digest(v)
     options["device"] = device.type
+    from ..fused import resolve_backend
+
+    options["lk_backend"] = resolve_backend(None, device)  # the tracker's kernels decide its bits
     return ckpt.fingerprint(cfg, inputs, options)
 
 

@@ -244,6 +244,7 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
         holder: List[Any] = []
 
         def work():
+            _same_lk_backend(job, opt.lk_backend, dev)
             if not mine:
                 return None
             return track_streams([cfgs[i] for i in mine], [sources[i] for i in mine], [out / f"stream{i}" for i in mine],
@@ -257,6 +258,20 @@ def run_track_sharded(config, sources: Sequence[Any], out, options=None, *, time
             _write_merged(out, "track-sharded", summary, index)
             return summary
         return _finish_job(job, holder, merge)
+
+
+def _same_lk_backend(job, requested, dev) -> None:
+    """Every rank resolves the tracker's kernels alike (``fused.resolve_backend``), or every rank raises
+    ``OptionError`` before any work: a rank without numba would fall back to the tensor LK and give
+    other bits than the others (and than one process)."""
+    from ..fused import resolve_backend
+
+    mine = resolve_backend(requested, dev)
+    every = job.all_gather(mine)
+    if len(set(every)) > 1:
+        ranks = ", ".join(f"rank {r}: {b}" for r, b in enumerate(every))
+        raise OptionError("lk_backend", f"lk_backend: the ranks resolve different LK kernels ({ranks}); install numba "
+                                        f"on every node or give every rank lk_backend tensor (or fused)")
 
 
 def _merge_track(gathered, sources, cfgs, opt, out: Path, job, seconds: float) -> Tuple[Dict[str, Any], Dict[str, Any]]:
@@ -295,6 +310,7 @@ def _merge_track(gathered, sources, cfgs, opt, out: Path, job, seconds: float) -
         "config": config_label(cfgs),
         "mode": opt.mode,
         "device": ranks[0].get("device", opt.device) if ranks else opt.device,
+        "lk_backend": sums[0]["lk_backend"] if sums else None,  # every rank's (checked before any work)
         "inputs": [s["inputs"][0] for s in sums],
         "out": str(out),
         "distributed": {"world_size": job.world_size, "backend": _backend(),

@@ -62,6 +62,9 @@ class TrackOptions(InputOptions):
         resume: continue the interrupted run of the same ``out`` from its last checkpoint
             (``ResumeError`` when it was another run: inputs, config or options); no checkpoint
             to continue from: start from the first frame (with a ``DataWarning`` saying so).
+        lk_backend: the tracker's pyramid and LK kernels (``FeatureTracker``'s ``lk_backend``:
+            None / ``"auto"``, ``"fused"``, ``"tensor"``). The resolved one is part of a checkpoint's
+            fingerprint and of the summary (a resume or a rank with other kernels would change bits).
     """
 
     mode: str = "mono"
@@ -72,6 +75,7 @@ class TrackOptions(InputOptions):
     bag_imu: bool = True
     checkpoint_every: Optional[int] = None
     resume: bool = False
+    lk_backend: Optional[str] = None
 
     def check(self) -> None:
         """Raise ``OptionError`` naming the first bad option."""
@@ -82,6 +86,10 @@ class TrackOptions(InputOptions):
                                                   f"checkpoints), got {self.checkpoint_every!r}")
         if self.mode not in TRACKER_MODES:
             raise OptionError("mode", f"mode: expected mono or fusion, got {self.mode!r}")
+        from ..fused import BACKENDS
+
+        if self.lk_backend is not None and self.lk_backend not in BACKENDS:
+            raise OptionError("lk_backend", f"lk_backend: expected one of {', '.join(BACKENDS)}, got {self.lk_backend!r}")
         if self.bag_format not in (None, "ros1", "ros2"):
             raise OptionError("bag_format", f"bag_format: expected ros1 or ros2, got {self.bag_format!r}")
         if self.bag is not None:
@@ -99,9 +107,12 @@ class TrackOptions(InputOptions):
     def output_options(self, device) -> Dict[str, Any]:
         """The options that change a run's outputs (a checkpoint's fingerprint; not ``workers``,
         ``progress`` nor the checkpoint interval), with the device's type."""
+        from ..fused import resolve_backend
+
         keep = ("mode", "max_frames", "camera", "fps", "topic", "skip_bad_frames", "write_tracks", "bag",
                 "bag_format", "bag_images", "bag_imu")
-        return {**{k: getattr(self, k) for k in keep}, "device": device.type}
+        return {**{k: getattr(self, k) for k in keep}, "device": device.type,
+                "lk_backend": resolve_backend(self.lk_backend, device)}
 
 
 def copy_imu(rec, cfg, sources, seqs, opt: TrackOptions, streams=None) -> None:
@@ -203,7 +214,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     seqs = open_inputs(sources, cfgs, opt)
     stream = FrameStream(seqs, size=stream_sizes(cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
-    tracker = make_tracker(cfgs, dev, opt.mode)
+    tracker = make_tracker(cfgs, dev, opt.mode, opt.lk_backend)
     fp = ckpt.fingerprint(cfgs, [ckpt.input_fingerprint(src, s) for src, s in zip(sources, seqs)],
                           opt.output_options(dev))
     resumed = ckpt.resume_point(out, fp) if opt.resume else None
@@ -259,6 +270,7 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
             "config": config_label(cfgs),
             "mode": opt.mode,
             "device": str(dev),
+            "lk_backend": tracker.lk_backend,
             "inputs": [_input_entry(src, s) for src, s in zip(sources, seqs)],
             "out": str(Path(out)),
         }
@@ -270,15 +282,15 @@ def run_track(config, sources: Sequence[Source], out, options: TrackOptions | No
     return summary
 
 
-def make_tracker(cfgs, device, mode: str):
+def make_tracker(cfgs, device, mode: str, lk_backend: Optional[str] = None):
     """The batched ``FeatureTracker`` of B streams with these per-stream configs: one config
     object for every stream is the homogeneous tracker (as one config broadcast to B), others are
     per-stream configs (``FeatureTracker([cfg_0, ..., cfg_B-1])``; equal ones share a group)."""
     from ..tracker import FeatureTracker
 
     if all(c is cfgs[0] for c in cfgs):
-        return FeatureTracker(cfgs[0], num_streams=len(cfgs), device=device, mode=mode)
-    return FeatureTracker(list(cfgs), device=device, mode=mode)
+        return FeatureTracker(cfgs[0], num_streams=len(cfgs), device=device, mode=mode, lk_backend=lk_backend)
+    return FeatureTracker(list(cfgs), device=device, mode=mode, lk_backend=lk_backend)
 
 
 def _input_times(stream, workers: int) -> Dict[str, Any]:
@@ -355,7 +367,7 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
     names = stream_names(seqs)
     stream = FrameStream(seqs, size=stream_sizes(cfgs), max_steps=opt.max_frames,
                          workers=opt.workers, pin_memory=dev.type == "cuda")
-    tracker = make_tracker(cfgs, dev, opt.mode)
+    tracker = make_tracker(cfgs, dev, opt.mode, opt.lk_backend)
     B = len(seqs)
     results: List[Dict[str, Any] | None] = [None] * B
     steps = 0
@@ -417,6 +429,7 @@ def track_streams(config, sources: Sequence[Source], outs: Sequence[Any], option
             "config": config_label([cfgs[b]]),
             "mode": opt.mode,
             "device": str(dev),
+            "lk_backend": tracker.lk_backend,
             "inputs": [_input_entry(sources[b], seqs[b])],
             "out": str(Path(outs[b])),
             **(extra or {}),

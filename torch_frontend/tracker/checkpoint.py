@@ -11,7 +11,8 @@ Convention:
     state's clock, read back once by the first step after loading.
 
     The dict: ``version`` (:data:`STATE_DICT_VERSION`), ``kind``, ``mode``, ``num_streams``,
-    ``capacity`` (``max_cnt``), ``dtype``, ``config`` (:func:`config_fingerprint`), ``treespec``,
+    ``capacity`` (``max_cnt``), ``dtype``, ``lk_backend`` (the resolved pyramid / LK kernels: a tracker
+    with others refuses the dict), ``config`` (:func:`config_fingerprint`), ``treespec``,
     ``leaves``, ``restarts`` (None for fusion). Every value is a tensor, a string, a number, None
     or a list / dict of those: ``torch.save`` it and ``torch.load(..., weights_only=True,
     map_location="cpu")`` reads it on any machine (saved on CUDA, loaded on the CPU).
@@ -99,6 +100,7 @@ def tracker_state_dict(tracker) -> Dict[str, Any]:
         "num_streams": int(tracker.B),
         "capacity": int(tracker.K),
         "dtype": str(tracker.dtype),
+        "lk_backend": tracker.lk_backend,
         "config": config_fingerprint(tracker.configs),
         "treespec": pytree.treespec_dumps(spec),
         "leaves": cpu,
@@ -133,6 +135,12 @@ def load_tracker_state_dict(tracker, d: Dict[str, Any]) -> None:
         raise ValueError(f"load_state_dict: the state is of another config: {diff}")
     same("capacity", int(tracker.K))
     same("dtype", str(tracker.dtype))
+    # the kernels decide bits: a state saved with one LK continued with the other would drift silently
+    # (a dict without the key predates the fused kernels: the tensor ones)
+    saved_lk = d.get("lk_backend", "tensor")
+    if saved_lk != tracker.lk_backend:
+        raise ValueError(f"load_state_dict: the state is of a tracker with lk_backend {saved_lk!r}, this one has "
+                         f"{tracker.lk_backend!r} (other kernels, other bits): build it with lk_backend={saved_lk!r}")
     try:
         spec = pytree.treespec_loads(d["treespec"])
         leaves = [x.to(tracker.device) if isinstance(x, torch.Tensor) else x for x in d["leaves"]]

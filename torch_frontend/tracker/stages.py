@@ -379,10 +379,13 @@ def update_id(table: FeatureTable, next_id: Tensor) -> Tuple[FeatureTable, Tenso
 def _velocity(un: Tensor, un_prev: Tensor, moving: Tensor, dt: Tensor) -> Tensor:
     """``(un - un_prev) / dt`` where ``moving (B, K)``, else 0. ``dt (B,)`` seconds; a duplicate
     stamp (``dt == 0``) gives zero velocity where VINS divides by zero (inf/NaN). The safe divisor
-    keeps the unused lanes finite."""
-    dt = dt.to(un.dtype).view(-1, 1, 1)
+    keeps the unused lanes finite. As VINS's ``ptsVelocity``: the difference of the points' own dtype
+    (``cv::Point2f``) divided by the double ``dt``, rounded once to the points' dtype (a float32 ``dt``
+    rounds twice: 1 ulp off where ``dt`` is not a float32, e.g. 0.1 s; tests/test_lockstep.py)."""
+    dt = dt.to(torch.float64).view(-1, 1, 1)
     moving = moving.unsqueeze(-1) & (dt != 0)
-    return torch.where(moving, (un - un_prev) / torch.where(dt == 0, torch.ones_like(dt), dt), torch.zeros_like(un))
+    v = ((un - un_prev).to(torch.float64) / torch.where(dt == 0, torch.ones_like(dt), dt)).to(un.dtype)
+    return torch.where(moving, v, torch.zeros_like(un))
 
 
 def undistorted_points(table: FeatureTable, camera, dt: Tensor, params: TrackerParams, *,

@@ -1,0 +1,111 @@
+"""The CUDA kernels' run-time self-check: a small built-in case against bits stored from the CPU kernels.
+
+Triton's interpreter (the tests' CPU run of the CUDA kernels) executes numpy, so it cannot show a GPU's
+own rounding: a compiler that contracted ``a * b + c`` into an FMA, an approximate division or square
+root, a flush-to-zero would change bits only on the GPU. Before the fused CUDA kernels are used on a
+device, :func:`cuda_selfcheck` runs them on :func:`case` (two synthetic 8-bit frames, a shift of a few
+pixels, points inside, at the edge, outside, invalid, with an initial guess, with the forward-backward
+check) and compares every output bit with :data:`EXPECTED`, which the CPU kernels produced
+(``tests/test_fused.py`` holds the two equal). Any difference: the fused backend is refused on CUDA,
+with the reason, and the tensor kernels run (one warning, ``fused.resolve_backend``). It runs once per
+process, at the first resolution of the backend on CUDA (tracker construction, a ``track_lk`` call),
+outside any graph capture or compilation.
+
+Convention:
+    :func:`case` returns the ops' arguments as CPU tensors; :func:`digest` reduces the outputs
+    ``(packed pyramids, next_pts, status, capped)`` to one sha256 hex string.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Dict, Optional
+
+import numpy as np
+import torch
+
+__all__ = ["case", "digest", "cuda_selfcheck", "EXPECTED", "run_case"]
+
+#: sha256 of the CPU kernels' outputs on :func:`case` (regenerate with ``python -m torch_frontend.fused.selfcheck``
+#: after a change to the kernels that is meant to move bits; tests/test_fused.py checks it)
+EXPECTED = "c22ce355b2e5542a18969a10f2de304ea7f356f7f5faa5913f555d4ee36f3322"
+
+_H, _W = 72, 104
+_MAX_LEVEL, _PAD, _WIN = 2, 22, 21
+
+
+def _texture(seed: int) -> np.ndarray:
+    """A textured ``(_H + 16, _W + 16)`` uint8 image from integer arithmetic only (bit-reproducible on
+    any machine): a linear congruential field, box-smoothed twice, plus a ramp."""
+    n = (_H + 16) * (_W + 16)
+    x = np.empty(n, dtype=np.int64)
+    s = seed
+    for i in range(n):
+        s = (1103515245 * s + 12345) % (1 << 31)
+        x[i] = s >> 23
+    img = x.reshape(_H + 16, _W + 16)
+    for _ in range(2):
+        p = np.pad(img, 1, mode="edge")
+        img = sum(p[dy:dy + img.shape[0], dx:dx + img.shape[1]] for dy in range(3) for dx in range(3)) // 9
+    ramp = (np.arange(_W + 16)[None, :] + 2 * np.arange(_H + 16)[:, None]) // 3
+    return ((img + ramp) % 256).astype(np.uint8)
+
+
+def case() -> Dict[str, torch.Tensor]:
+    """The built-in case (CPU tensors): ``prev``, ``next`` ``(2, _H, _W)`` uint8 (stream 1 the same
+    scene shifted differently), ``pts``, ``init`` ``(2, 12, 2)`` float32, ``valid`` ``(2, 12)`` bool."""
+    big = _texture(7)
+    prev = np.stack([big[4:4 + _H, 5:5 + _W], big[9:9 + _H, 2:2 + _W]])
+    nxt = np.stack([big[6:6 + _H, 8:8 + _W], big[7:7 + _H, 1:1 + _W]])  # shifts (3, 2) and (-1, -2) px
+    gy, gx = np.meshgrid(np.linspace(12.3, _H - 13.1, 3), np.linspace(10.7, _W - 9.9, 3), indexing="ij")
+    grid = np.stack([gx.ravel(), gy.ravel()], 1)
+    extra = np.array([[1.5, 2.25], [_W - 1.25, _H - 0.5], [-30.0, 20.0]])  # edge, edge, outside
+    pts = np.stack([np.concatenate([grid, extra]), np.concatenate([grid[::-1], extra])]).astype(np.float32)
+    valid = np.ones((2, 12), dtype=bool)
+    valid[1, 4] = False
+    init = pts + np.array([[[2.5, 1.75]], [[-0.5, -1.5]]], dtype=np.float32)
+    init[1, 7, 0] = np.nan  # a non-finite guess: status 0, the lane holds its point
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in
+            dict(prev=prev, next=nxt, pts=pts, valid=valid, init=init).items()}
+
+
+def digest(*outputs: torch.Tensor) -> str:
+    """sha256 hex of the outputs' dtypes, shapes and bytes (on the CPU)."""
+    h = hashlib.sha256()
+    for t in outputs:
+        t = t.detach().cpu().contiguous()
+        h.update(f"{t.dtype} {tuple(t.shape)};".encode())
+        h.update((t.to(torch.uint8) if t.dtype == torch.bool else t).numpy().tobytes())
+    return h.hexdigest()
+
+
+def run_case(device) -> str:
+    """The fused ops on :func:`case` on ``device`` (both pyramids; the LK plain, with a guess, with the
+    forward-backward check), as one :func:`digest`."""
+    from .ops import lk_op, pyramid_op
+
+    c = {k: v.to(device) for k, v in case().items()}
+    P = pyramid_op(c["prev"], _MAX_LEVEL, _PAD)
+    Q = pyramid_op(c["next"], _MAX_LEVEL, _PAD)
+    outs = [P, Q]
+    for init, fb in ((None, -1), (c["init"], -1), (None, 1)):
+        outs += list(lk_op(P, Q, c["pts"], c["valid"], init, _H, _W, _PAD, _PAD, _MAX_LEVEL, _WIN, _WIN, 30, 0.01,
+                           1e-4, fb, 0.5, True))
+    return digest(*outs)
+
+
+def cuda_selfcheck(device=None) -> Optional[str]:
+    """None when the fused CUDA kernels give :data:`EXPECTED` on ``device`` (default: the current CUDA
+    device), else why not (a difference or an error)."""
+    dev = torch.device("cuda", torch.cuda.current_device()) if device is None else torch.device(device)
+    try:
+        got = run_case(dev)
+    except Exception as e:  # noqa: BLE001 - a kernel that fails to compile or launch: not usable
+        return f"the CUDA kernels failed their self-check ({type(e).__name__}: {str(e).splitlines()[0][:200]})"
+    if got != EXPECTED:
+        return f"the CUDA kernels' self-check gave other bits than the CPU kernels ({got[:12]} != {EXPECTED[:12]})"
+    return None
+
+
+if __name__ == "__main__":  # print the CPU kernels' digest (to store in EXPECTED)
+    print(run_case("cpu"))
