@@ -3,6 +3,7 @@ PY ?= python3
 VENV := .venv
 VPY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+TRITON_STAMP := $(VENV)/.installed-triton
 
 .PHONY: demo test test-all bench lint clean
 
@@ -18,7 +19,13 @@ TORCH_INDEX ?=
 $(STAMP): $(VPY) pyproject.toml
 	$(VPY) -m pip install -q torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(VPY) -m pip install -q -e ".[dev]"
+	$(VPY) -m torch_frontend.fused.selfcheck --warm  # the fused CPU kernels' JIT compile, once (numba's cache)
 	touch $(STAMP)
+
+# Triton for the CUDA kernels' tests (interpreted on the CPU, PTX compiled for sm_90): test-all / CI only
+$(TRITON_STAMP): $(STAMP)
+	$(VPY) -m pip install -q -e ".[dev,triton]"
+	touch $(TRITON_STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/torch-frontend demo
@@ -30,8 +37,8 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VPY) -m pytest -q -n auto --dist loadscope -m "not slow"
 
-test-all: $(STAMP)
-	$(VPY) -m pytest -q -n auto --dist loadscope
+test-all: $(TRITON_STAMP)
+	TORCH_FRONTEND_REQUIRE_TRITON=1 $(VPY) -m pytest -q -n auto --dist loadscope
 
 bench: $(STAMP)
 	$(VPY) benchmarks/bench_pipeline.py --compile --capturable

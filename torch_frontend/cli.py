@@ -69,7 +69,8 @@ _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fp
                 "camera": "--camera", "workers": "--workers"}
 _TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
                 "checkpoint_every": "--checkpoint-every", "resume": "--resume", "lk_backend": "--lk-backend"}
-_DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode"}
+_DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode",
+               "lk_backend": "--lk-backend"}
 _LOOP_FLAGS = {
     **_INPUT_FLAGS, "poses": "--poses", "ground_truth": "--ground-truth", "vocabulary": "--vocabulary",
     "train_vocabulary": "--train-vocabulary", "vocabulary_k": "--train-k", "vocabulary_L": "--train-L",
@@ -146,7 +147,7 @@ def format_summary(s: Dict[str, Any]) -> str:
         f"tracks        {s['tracks']}   mean length {s['mean_track_length']:.2f}   "
         f"median {s['median_track_length']:g} frames",
         f"speed         {s['frames_per_second']:.1f} frames/s ({s['seconds']:.2f} s on {s.get('device', '?')}, "
-        f"mode {s.get('mode', '?')})",
+        f"mode {s.get('mode', '?')}, {s.get('lk_backend', '?')} LK)",
         f"skipped       {s['skipped_bad_frames']} bad frames",
     ]
     for k in s.get("skipped", [])[:5]:
@@ -400,7 +401,7 @@ def _cmd_demo_flight(args: argparse.Namespace) -> int:
     cfg, sources = demo_flight_inputs()
     print(cfg.settings_line())
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
-                       write_tracks=not args.no_tracks, progress=_progress(args))
+                       write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
     print(format_summary(run_track(cfg, sources, out, opt)))
     return 0
 
@@ -421,7 +422,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(cfg.summary())
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
-                       write_tracks=not args.no_tracks, progress=_progress(args))
+                       write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
     print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
     return 0
 

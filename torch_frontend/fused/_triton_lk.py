@@ -1,4 +1,4 @@
-"""The fused pyramidal LK on a CUDA device: one Triton kernel, bit-identical to ``cv2.calcOpticalFlowPyrLK``.
+"""The fused pyramidal LK on a CUDA device: a Triton kernel, bit-identical to ``cv2.calcOpticalFlowPyrLK``.
 
 Convention:
     A *lane* is one point of one stream: lane ``k = b N + i`` of ``B`` streams of ``N`` points.
@@ -7,34 +7,43 @@ Convention:
     ``pts``, ``init``, the result's positions: ``(B, N, 2)`` float32 pixel coordinates ``(x, y)`` of
     level 0 (pixel centres at integers); ``valid``, ``status``, ``capped``: ``(B, N)`` bool. The
     window is ``(ww, wh)`` pixels (VINS: 21 x 21). The arithmetic of every lane is "Op 2" of the LK
-    contract (``docs/opencv_lk_arithmetic.md`` says why each step is what it is): the CPU kernel
-    (``_numba_lk.py``) and this one give identical bits on every lane, tracked or not.
+    contract (``opencv_lk_arithmetic.md`` of the shared docs says why each step is what it is): the
+    CPU kernel (``_numba_lk.py``) and this one give identical bits on every lane, tracked or not.
 
 How the contract's sequential float sums are kept on a GPU:
     A program runs ``_BLOCK`` lanes; each lane runs all its levels and iterations itself (lanes that
     stop early wait, masked, for the block's last one: the iteration loop ends when no lane of the
     block still runs). The window is walked row by row: a row is a ``(BLOCK, WP)`` integer tile
-    (``WP`` = ``ww`` rounded up to a power of two, columns ``>= ww`` masked to 0). Every float
-    accumulator of the contract is its own register chain, updated row after row in the contract's
-    order: the 4 SIMD-lane accumulators of a lane are a ``(BLOCK, 4)`` float tile (element ``(k, l)``
-    is lane ``k``'s accumulator ``l``) and the scalar tail a ``(BLOCK,)`` float vector. The values
-    added to them are *integers* (exact products below 2^24, int32 pair sums) picked out of a row tile
-    by masked integer ``tl.sum``: a sum of one value and zeros, exact in any order. No float value is
-    ever reduced across threads; the final ``t + ((c0 + c2) + (c1 + c3))`` picks the four
-    accumulators out of the tile bit-wise (as int32, again one value and zeros) and adds them in
-    that order.
+    (``WP`` = ``ww`` rounded up to a power of two, columns ``>= ww`` masked to 0), or ``(BLOCK, WP, 2)``
+    for two quantities at once (``diff Ix, diff Iy``). Every float accumulator of the contract is
+    its own register chain, updated row after row in the contract's order: the 4 SIMD-lane
+    accumulators of ``K`` quantities are a ``(BLOCK, 4, K)`` float tile (element ``(k, l, q)`` is lane
+    ``k``'s accumulator ``l`` of quantity ``q``), the scalar tails a ``(BLOCK, K)`` tile. The values
+    added to them are *integers* (exact products below 2^24, int32 pair sums) picked out of a row
+    tile by a masked integer ``tl.sum``: one value and zeros, exact in any order. No float value is
+    ever reduced across elements; the final ``t + ((c0 + c2) + (c1 + c3))`` picks the accumulators
+    out of the tile bit-wise (their int32 patterns, again one value and zeros) and adds them in that
+    order.
 
-Template storage: the template ``I, Ix, Iy`` of a lane at a level (int16: ``|I| <= 8160``,
-``|Ix|, |Iy| <= 4080``) is written once per level to a global scratch buffer ``(B N, 3, wh, ww)``
-int16 that the launcher allocates, and read back row by row by every iteration (L1/L2 resident:
-2.6 KB per lane for 21 x 21). The forward-backward pass reuses it.
+Template storage: the template of a lane at a level is written once per level to a global scratch
+buffer ``(B N, 3, wh ww)`` int16 that the launcher allocates (``|I| <= 8160``, ``|Ix|, |Iy| <= 4080``):
+plane 0 holds ``I[y, x]`` at ``y ww + x``, planes 1-2 ``(Ix, Iy)`` interleaved at ``2 (y ww + x)``, so
+that an iteration reads a row's gradients as one ``(BLOCK, WP, 2)`` tile (2.6 KB per lane for 21 x 21,
+L1/L2 resident). Each lane's scratch is written and read by its own program only.
 
-Floating point: launched with ``enable_fp_fusion=False`` (no FMA contraction: every product is
-rounded before its sum, as SSE2 does), ``tl.div_rn`` / ``tl.sqrt_rn`` (Triton's ``/`` and ``tl.sqrt``
-are approximate on sm_90), ``rint`` as ``(x + 2^23) - 2^23`` (exact round-half-even for
-``0 <= x <= 2^22``), the double-precision tests on ``fp64`` values (kernel thresholds are ``fp64``
-arguments). :func:`ptx_sm90` compiles every kernel of this module and of ``_triton_pyramid.py`` for
-sm_90 without a GPU, for a test that their PTX has no ``fma``, ``.approx``, ``div.full`` or ``.ftz``.
+Forward-backward: a second launch of the same kernel (``BACKWARD``) tracks the result back on the
+lanes the first kept. One tracker per compiled kernel: with both inlined in one kernel ptxas took
+~80 s (one: ~5 s).
+
+Floating point: every kernel is compiled with ``enable_fp_fusion=False`` (no FMA contraction: every
+product is rounded before its sum, as SSE2 does) and ``enable_reflect_ftz=False`` (Triton's default
+makes libdevice flush subnormals: ``tl.floor`` was ``cvt.rmi.ftz.f32``); ``tl.div_rn`` /
+``tl.sqrt_rn`` (Triton's ``/`` and ``tl.sqrt`` are approximate on sm_90 for float32); ``rint`` as
+``(x + 2^23) - 2^23`` (exact round-half-even for ``0 <= x <= 2^22``); the double-precision tests on
+``fp64`` values (the thresholds are ``fp64`` kernel arguments, the literal 0.01 an fp64 constant).
+:func:`ptx_sm90` compiles every kernel of this module and of ``_triton_pyramid.py`` for sm_90
+without a GPU, for a test that their PTX has no ``fma``, ``.approx``, ``div.full`` or ``.ftz`` and
+rounds every float add / sub / mul ``.rn`` (ptxas may contract a mul and an add without it).
 """
 
 from typing import Dict, Optional, Tuple
@@ -48,7 +57,7 @@ from ._triton_pyramid import _COMPILE_OPTIONS
 
 __all__ = ["lk_cuda", "ptx_sm90"]
 
-#: lanes per program: (32, 32) int32 row tiles, 8 elements per thread at 4 warps
+#: lanes per program: (32, 32) int32 row tiles (8 elements per thread at 4 warps), (32, 32, 2) for two
 _BLOCK = 32
 _NUM_WARPS = 4
 
@@ -225,7 +234,7 @@ def _track(P, Q, pad_p, pad_q, px, py, sx, sy, ok, top, height, width, max_iters
     packed pyramid (pads ``pad_p``, ``pad_q``); ``(px, py)``: the point in ``P`` (level 0);
     ``(sx, sy)``: the start in ``Q`` (level 0; the point itself when there is none); ``ok``: lanes
     to track (the others compute nothing and return ``status`` False). ``tpl``: ``(BLOCK,)``
-    pointers to each lane's ``(3, wh, ww)`` int16 scratch. Returns ``nx, ny`` (float32), ``status``,
+    pointers to each lane's ``(3, wh ww)`` int16 scratch. Returns ``nx, ny`` (float32), ``status``,
     ``capped``.
     """
     HW: tl.constexpr = (WW - 1) * 0.5
@@ -288,6 +297,9 @@ def _track(P, Q, pad_p, pad_q, px, py, sx, sy, ok, top, height, width, max_iters
         A11 = _pick(sa, 0)
         A12 = _pick(sa, 1)
         A22 = _pick(sb, 1)
+        # the template's stores before any thread of the program reads them back (another thread
+        # may own an element in the iterations' layouts)
+        tl.debug_barrier()
 
         # ---- the minimum eigenvalue test (minEig compared in double, D in float32)
         D = A11 * A22 - A12 * A12
@@ -356,22 +368,29 @@ def _track(P, Q, pad_p, pad_q, px, py, sx, sy, ok, top, height, width, max_iters
             j += 1
         # lanes still running after max_iters iterations at level 0 hit the cap
         capped = capped | (run & lvl0)
+        # every read of this level's template before the next level overwrites it
+        tl.debug_barrier()
 
     # the final bounds check of level 0
     status = status & _inside(tl.floor(nx - HW), tl.floor(ny - HH), height, width, WW, WH)
     return nx, ny, status, capped
 
 
-@triton.jit(do_not_specialize=["top", "fb_top"])
-def _lk_kernel(prev_ptr, next_ptr, pts_ptr, valid_ptr, init_ptr, out_pts_ptr, status_ptr, capped_ptr, tpl_ptr,
-               n_lanes, n_per_stream, total_prev, total_next, height, width, pad_prev, pad_next,
-               top, fb_top, max_iters, eps2: tl.float64, min_eig: tl.float64, fb_threshold: tl.float64,
+@triton.jit
+def _lk_kernel(prev_ptr, next_ptr, pts_ptr, valid_ptr, init_ptr, origin_ptr, out_pts_ptr, status_ptr, capped_ptr,
+               tpl_ptr, n_lanes, n_per_stream, total_prev, total_next, height, width, pad_prev, pad_next, top,
+               max_iters, eps2: tl.float64, min_eig: tl.float64, fb_threshold: tl.float64,
                WW: tl.constexpr, WH: tl.constexpr, WP: tl.constexpr, HAS_INIT: tl.constexpr,
-               FB: tl.constexpr, FB_FROM_PTS: tl.constexpr, BLOCK: tl.constexpr):
-    """"Op 2" of the contract for lanes ``pid * BLOCK ..``: grid ``(cdiv(B N, BLOCK),)``.
+               BACKWARD: tl.constexpr, BLOCK: tl.constexpr):
+    """One pass of "Op 2" for lanes ``pid * BLOCK ..``: grid ``(cdiv(B N, BLOCK),)``.
 
-    ``eps2`` = eps^2 (double, OpenCV squares the criteria's epsilon), ``min_eig`` and ``fb_threshold``
-    are doubles. ``FB``: run the backward check (``fb_top >= 0``).
+    Forward (``BACKWARD`` False): tracks ``pts`` from ``prev`` into ``next`` (starting at ``init``
+    when ``HAS_INIT``), writes ``out_pts``, ``status``, ``capped``. Backward (the forward-backward
+    check, a second launch): ``prev`` / ``next`` are the forward pass's ``next`` / ``prev``, ``pts``
+    its result, ``valid`` its status, ``init`` the points (``fb_from_pts``) or absent, ``origin`` the
+    points; writes only ``status`` = valid and tracked back and ``|back - origin| <= fb_threshold``.
+    ``eps2`` = eps^2 (double: OpenCV squares the criteria's epsilon), ``min_eig`` and
+    ``fb_threshold`` are doubles.
     """
     pid = tl.program_id(0)
     lane = pid * BLOCK + tl.arange(0, BLOCK)
@@ -397,28 +416,22 @@ def _lk_kernel(prev_ptr, next_ptr, pts_ptr, valid_ptr, init_ptr, out_pts_ptr, st
     tpl = tpl_ptr + lane.to(tl.int64) * (3 * WW * WH)
     nx, ny, status, capped = _track(P, Q, pad_prev, pad_next, px, py, gx, gy, ok, top, height, width,
                                     max_iters, eps2, min_eig, tpl, WW, WH, WP, BLOCK)
-    if FB:
-        # the backward pass: from the result in next back to prev, starting at the points or at the result
-        if FB_FROM_PTS:
-            bsx = px
-            bsy = py
-        else:
-            bsx = nx
-            bsy = ny
-        bx, by, bst, _bc = _track(Q, P, pad_next, pad_prev, nx, ny, bsx, bsy, ok & status, fb_top, height,
-                                  width, max_iters, eps2, min_eig, tpl, WW, WH, WP, BLOCK)
+    if BACKWARD:
+        ox = tl.load(origin_ptr + 2 * lane, mask=live, other=0.0)
+        oy = tl.load(origin_ptr + 2 * lane + 1, mask=live, other=0.0)
         # the float32 differences, then double: the distance and its comparison in double (tl.sqrt_rn
         # takes fp32 only; tl.sqrt of fp64 is sqrt.rn.f64, correctly rounded: PTX has no approximate
         # f64 square root)
-        ex = (bx - px).to(tl.float64)
-        ey = (by - py).to(tl.float64)
-        status = status & bst & (tl.sqrt(ex * ex + ey * ey) <= fb_threshold)
-    nx = tl.where(ok, nx, gx)
-    ny = tl.where(ok, ny, gy)
-    tl.store(out_pts_ptr + 2 * lane, nx, mask=live)
-    tl.store(out_pts_ptr + 2 * lane + 1, ny, mask=live)
-    tl.store(status_ptr + lane, ok & status, mask=live)
-    tl.store(capped_ptr + lane, ok & capped, mask=live)
+        ex = (nx - ox).to(tl.float64)
+        ey = (ny - oy).to(tl.float64)
+        tl.store(status_ptr + lane, ok & status & (tl.sqrt(ex * ex + ey * ey) <= fb_threshold), mask=live)
+    else:
+        nx = tl.where(ok, nx, gx)
+        ny = tl.where(ok, ny, gy)
+        tl.store(out_pts_ptr + 2 * lane, nx, mask=live)
+        tl.store(out_pts_ptr + 2 * lane + 1, ny, mask=live)
+        tl.store(status_ptr + lane, ok & status, mask=live)
+        tl.store(capped_ptr + lane, ok & capped, mask=live)
 
 
 # -------------------------------------------------------------------------------------- launchers
@@ -464,20 +477,30 @@ def lk_cuda(prev: torch.Tensor, next: torch.Tensor, pts: torch.Tensor, valid: to
     next = next.contiguous()
     pts = pts.contiguous().to(torch.float32)
     valid = valid.contiguous().to(torch.bool)
-    has_init = init is not None
-    init_t = init.contiguous().to(torch.float32) if has_init else pts
+    init = None if init is None else init.contiguous().to(torch.float32)
     ww, wh = int(win_w), int(win_h)
-    tpl = torch.empty((n_lanes, 3, wh, ww), dtype=torch.int16, device=dev)
-    fb = int(fb_top) >= 0
-    eps = float(eps)
+    # the per-lane template scratch: (I | (Ix, Iy) interleaved), int16
+    tpl = torch.empty((n_lanes, 3, wh * ww), dtype=torch.int16, device=dev)
     grid = (triton.cdiv(n_lanes, _BLOCK),)
+    common = dict(WW=ww, WH=wh, WP=_row_tile(ww), BLOCK=_BLOCK, num_warps=_NUM_WARPS, **_COMPILE_OPTIONS)
+    eps = float(eps)
+    # the forward pass (unused pointer arguments get a tensor of the right type: never read)
     torch.library.wrap_triton(_lk_kernel)[grid](
-        prev, next, pts, valid, init_t, out_pts, status, capped, tpl,
+        prev, next, pts, valid, pts if init is None else init, pts, out_pts, status, capped, tpl,
         n_lanes, N, int(prev.shape[1]), int(next.shape[1]), int(height), int(width), int(pad_prev),
-        int(pad_next), int(top), int(fb_top), int(max_iters), eps * eps, float(min_eig), float(fb_threshold),
-        WW=ww, WH=wh, WP=_row_tile(ww), HAS_INIT=has_init, FB=fb, FB_FROM_PTS=bool(fb_from_pts),
-        BLOCK=_BLOCK, num_warps=_NUM_WARPS, **_COMPILE_OPTIONS)
-    return out_pts, status, capped
+        int(pad_next), int(top), int(max_iters), eps * eps, float(min_eig), float(fb_threshold),
+        HAS_INIT=init is not None, BACKWARD=False, **common)
+    if int(fb_top) < 0:
+        return out_pts, status, capped
+    # the backward pass: a second launch (one tracker per compiled kernel: ptxas's time grows much
+    # faster than the code), next -> prev from the result, on the lanes the forward pass kept
+    fb_status = torch.empty_like(status)
+    torch.library.wrap_triton(_lk_kernel)[grid](
+        next, prev, out_pts, status, pts, pts, out_pts, fb_status, capped, tpl,
+        n_lanes, N, int(next.shape[1]), int(prev.shape[1]), int(height), int(width), int(pad_next),
+        int(pad_prev), int(fb_top), int(max_iters), eps * eps, float(min_eig), float(fb_threshold),
+        HAS_INIT=bool(fb_from_pts), BACKWARD=True, **common)
+    return out_pts, fb_status, capped
 
 
 # ----------------------------------------------------------------------------------- PTX (no GPU)
@@ -486,12 +509,12 @@ _VINS_WIN = 21
 
 _LK_SIGNATURE = {
     "prev_ptr": "*u8", "next_ptr": "*u8", "pts_ptr": "*fp32", "valid_ptr": "*i1", "init_ptr": "*fp32",
-    "out_pts_ptr": "*fp32", "status_ptr": "*i1", "capped_ptr": "*i1", "tpl_ptr": "*i16",
+    "origin_ptr": "*fp32", "out_pts_ptr": "*fp32", "status_ptr": "*i1", "capped_ptr": "*i1", "tpl_ptr": "*i16",
     "n_lanes": "i32", "n_per_stream": "i32", "total_prev": "i32", "total_next": "i32", "height": "i32",
-    "width": "i32", "pad_prev": "i32", "pad_next": "i32", "top": "i32", "fb_top": "i32", "max_iters": "i32",
+    "width": "i32", "pad_prev": "i32", "pad_next": "i32", "top": "i32", "max_iters": "i32",
     "eps2": "fp64", "min_eig": "fp64", "fb_threshold": "fp64",
-    "WW": "constexpr", "WH": "constexpr", "WP": "constexpr", "HAS_INIT": "constexpr", "FB": "constexpr",
-    "FB_FROM_PTS": "constexpr", "BLOCK": "constexpr",
+    "WW": "constexpr", "WH": "constexpr", "WP": "constexpr", "HAS_INIT": "constexpr", "BACKWARD": "constexpr",
+    "BLOCK": "constexpr",
 }
 _PYR_SIGNATURES = {
     "pyramid_level0": {"img_ptr": "*u8", "out_ptr": "*u8", "height": "i32", "width": "i32", "total": "i32",
@@ -499,10 +522,11 @@ _PYR_SIGNATURES = {
     "pyramid_down": {"out_ptr": "*u8", "total": "i32", "src_off": "i32", "s_h": "i32", "s_w": "i32",
                      "dst_off": "i32", "d_h": "i32", "d_w": "i32", "pad": "i32", "BLOCK": "constexpr"},
 }
-#: the LK variants compiled by :func:`ptx_sm90`: (HAS_INIT, FB, FB_FROM_PTS)
+#: the LK variants compiled by :func:`ptx_sm90`: (HAS_INIT, BACKWARD)
 _LK_VARIANTS = {
-    "lk": (False, False, False),  # VINS-Mono: no initial flow, no backward check
-    "lk_init_fb": (True, True, True),  # every optional path (the FB start is a select, no float op)
+    "lk": (False, False),  # VINS-Mono: no initial flow (the forward pass of every forward-backward too)
+    "lk_init": (True, False),  # OPTFLOW_USE_INITIAL_FLOW
+    "lk_back": (True, True),  # the backward pass from the points (the only one with fp64 sqrt)
 }
 
 
@@ -540,9 +564,9 @@ def ptx_sm90() -> Dict[str, str]:
 def _compile_all(target, out: Dict[str, str]) -> None:
     from triton.compiler import ASTSource
 
-    for name, (has_init, fb, from_pts) in _LK_VARIANTS.items():
+    for name, (has_init, backward) in _LK_VARIANTS.items():
         consts = {"WW": _VINS_WIN, "WH": _VINS_WIN, "WP": _row_tile(_VINS_WIN), "HAS_INIT": has_init,
-                  "FB": fb, "FB_FROM_PTS": from_pts, "BLOCK": _BLOCK}
+                  "BACKWARD": backward, "BLOCK": _BLOCK}
         src = ASTSource(fn=_lk_kernel, signature=_LK_SIGNATURE, constexprs=consts)
         out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS,
                                                                  "num_warps": _NUM_WARPS}).asm["ptx"]
