@@ -102,7 +102,7 @@ def test_fused_lk_equals_cv2_on_every_point_of_the_repos_real_pairs():
     print(f"fused LK == cv2 on {n} points of {len(pairs)} real pairs")
 
 
-@pytest.mark.slow  # ~220,000 more points (10 s): the repo's pairs above run in the default suite
+@pytest.mark.slow  # 243,102 more points (10 s): the repo's pairs above run in the default suite
 def test_fused_lk_equals_cv2_on_shared_sequences():
     root = shared_data_or_skip("sequences", "euroc_v1_01_easy_micro", "mav0")
     rng = np.random.default_rng(1)
