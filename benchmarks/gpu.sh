@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# torch-frontend on a CUDA machine: the CUDA tests, then the pipeline benchmark for
+# torch-frontend on a CUDA machine: the fused CUDA kernels against the CPU kernels and cv2, the CUDA
+# tests, then the pipeline benchmark for
 # B in {1, 16, 64, 256} (eager = the capturable CUDA path, and one compiled row with CUDA graphs).
 # Writes benchmarks/results/pipeline_cuda.{json,md} (temp + rename). Budget: under 8 minutes on an
 # H100-class GPU (tests ~2 min, eager rows ~2 min, the compiled row's graph build ~2-3 min).
@@ -20,6 +21,10 @@ print(f"torch {torch.__version__}, {torch.cuda.get_device_name(0)}")
 PYEOF
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 start=$(date +%s)
+# first: the fused CUDA kernels against the CPU kernels, cv2 and the tensor LK on real pairs (with the
+# run-time self-check); benchmarks/results/fused_cuda.json
+"$PY" benchmarks/fused_cuda_check.py --device cuda || { echo "gpu.sh: the fused CUDA kernels differ"; exit 1; }
+echo "gpu.sh: fused CUDA check $(( $(date +%s) - start )) s"
 # every test parametrized over the device has 'cuda' in its id; -x: the first failure stops the run
 "$PY" -m pytest -q -x -p no:cacheprovider -k cuda tests/ || { echo "gpu.sh: CUDA tests failed"; exit 1; }
 echo "gpu.sh: CUDA tests $(( $(date +%s) - start )) s"
