@@ -36,7 +36,7 @@ from ._checks import as_float_image, as_image_batch
 from .errors import ConfigError
 from .fused import resolve_backend
 from .fused.layout import DEFAULT_PAD, PyramidLayout
-from .fused.ops import pyramid_op
+from .fused.ops import MIN_PAD, pyramid_op
 
 __all__ = ["Pyramid", "build_pyramid", "pyr_down", "scharr_gradients", "pad_reflect101"]
 
@@ -325,8 +325,8 @@ def build_pyramid(
                                backend=resolve_backend(backend, raw.device))
 
 
-# the packed pyramid's smallest border: pyrDown reads 2 pixels out, its 16-byte loads one more
-_MIN_PACKED_PAD = 3
+# the packed pyramid's smallest border (the op's: pyrDown reads 2 pixels out, its 16-byte loads one more)
+_MIN_PACKED_PAD = MIN_PAD
 
 
 def _build_pyramid_impl(img: torch.Tensor, max_level: int, with_gradients: bool, round_levels: bool, *,

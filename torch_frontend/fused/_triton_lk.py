@@ -57,9 +57,11 @@ from ._triton_pyramid import _COMPILE_OPTIONS
 
 __all__ = ["lk_cuda", "ptx_sm90"]
 
-#: lanes per program: (32, 32) int32 row tiles (8 elements per thread at 4 warps), (32, 32, 2) for two
+#: lanes per program and warps: (32, 32) int32 row tiles, (32, 32, 2) for two quantities (8 elements per
+#: thread at 8 warps). ptxas for sm_90: 255 registers and 28 bytes of spill at 8 warps (4 warps:
+#: 1.6 KB of spill per thread; 16 lanes at 8 warps: 176 registers, no spill, half the lanes per CTA)
 _BLOCK = 32
-_NUM_WARPS = 4
+_NUM_WARPS = 8
 
 #: OpenCV's fixed-point constants: bilinear weights in 2^14, the template in 2^5 grey levels
 _W_ONE = tl.constexpr(16384)  # 1 << W_BITS
@@ -377,9 +379,9 @@ def _track(P, Q, pad_p, pad_q, px, py, sx, sy, ok, top, height, width, max_iters
 
 
 @triton.jit
-def _lk_kernel(prev_ptr, next_ptr, pts_ptr, valid_ptr, init_ptr, origin_ptr, out_pts_ptr, status_ptr, capped_ptr,
-               tpl_ptr, n_lanes, n_per_stream, total_prev, total_next, height, width, pad_prev, pad_next, top,
-               max_iters, eps2: tl.float64, min_eig: tl.float64, fb_threshold: tl.float64,
+def _lk_kernel(prev_ptr, next_ptr, pts_ptr, valid_ptr, init_ptr, origin_ptr, out_pts_ptr, status_ptr,
+               capped_ptr, tpl_ptr, n_lanes, n_per_stream, total_prev, total_next, height, width, pad_prev,
+               pad_next, top, max_iters, eps2: tl.float64, min_eig: tl.float64, fb_threshold: tl.float64,
                WW: tl.constexpr, WH: tl.constexpr, WP: tl.constexpr, HAS_INIT: tl.constexpr,
                BACKWARD: tl.constexpr, BLOCK: tl.constexpr):
     """One pass of "Op 2" for lanes ``pid * BLOCK ..``: grid ``(cdiv(B N, BLOCK),)``.
@@ -509,7 +511,8 @@ _VINS_WIN = 21
 
 _LK_SIGNATURE = {
     "prev_ptr": "*u8", "next_ptr": "*u8", "pts_ptr": "*fp32", "valid_ptr": "*i1", "init_ptr": "*fp32",
-    "origin_ptr": "*fp32", "out_pts_ptr": "*fp32", "status_ptr": "*i1", "capped_ptr": "*i1", "tpl_ptr": "*i16",
+    "origin_ptr": "*fp32", "out_pts_ptr": "*fp32", "status_ptr": "*i1", "capped_ptr": "*i1",
+    "tpl_ptr": "*i16",
     "n_lanes": "i32", "n_per_stream": "i32", "total_prev": "i32", "total_next": "i32", "height": "i32",
     "width": "i32", "pad_prev": "i32", "pad_next": "i32", "top": "i32", "max_iters": "i32",
     "eps2": "fp64", "min_eig": "fp64", "fb_threshold": "fp64",
@@ -532,9 +535,9 @@ _LK_VARIANTS = {
 
 def _ptx_only_hook(*args):
     """A ``knobs.runtime.add_stages_inspection_hook`` that stops the pipeline at PTX: the ``cubin``
-    stage (ptxas, ~80 % of the compile time and the only stage that needs the CUDA toolchain's
-    assembler) returns no binary. Called with no argument it names itself for the cache key, so
-    these binary-less kernels never shadow a launchable one in Triton's cache."""
+    stage (ptxas: a third of the LK kernel's compile time, nothing the PTX check reads) returns no
+    binary. Called with no argument it names itself for the cache key, so these binary-less kernels
+    never shadow a launchable one in Triton's cache."""
     if not args:
         return "torch_frontend-ptx-only", "torch_frontend-ptx-only"
     stages = args[1]
@@ -551,17 +554,22 @@ def ptx_sm90() -> Dict[str, str]:
     from triton.backends.compiler import GPUTarget
 
     target = GPUTarget("cuda", 90, 32)
-    out = {}
-    saved = triton.knobs.runtime.add_stages_inspection_hook
-    triton.knobs.runtime.add_stages_inspection_hook = _ptx_only_hook
+    out: Dict[str, str] = {}
+    runtime = getattr(getattr(triton, "knobs", None), "runtime", None)
+    if runtime is None or not hasattr(runtime, "add_stages_inspection_hook"):  # older Triton: with ptxas
+        _compile_all(target, out)
+        return out
+    saved = runtime.add_stages_inspection_hook
+    runtime.add_stages_inspection_hook = _ptx_only_hook
     try:
         _compile_all(target, out)
     finally:
-        triton.knobs.runtime.add_stages_inspection_hook = saved
+        runtime.add_stages_inspection_hook = saved
     return out
 
 
 def _compile_all(target, out: Dict[str, str]) -> None:
+    """Fill ``out`` with the PTX of every kernel variant (see :func:`ptx_sm90`)."""
     from triton.compiler import ASTSource
 
     for name, (has_init, backward) in _LK_VARIANTS.items():
@@ -571,6 +579,7 @@ def _compile_all(target, out: Dict[str, str]) -> None:
         out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS,
                                                                  "num_warps": _NUM_WARPS}).asm["ptx"]
     for name, kern in _triton_pyramid.KERNELS.items():
-        src = ASTSource(fn=kern, signature=_PYR_SIGNATURES[name], constexprs={"BLOCK": _triton_pyramid._BLOCK})
+        src = ASTSource(fn=kern, signature=_PYR_SIGNATURES[name],
+                        constexprs={"BLOCK": _triton_pyramid._BLOCK})
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_pyramid._NUM_WARPS}).asm["ptx"]

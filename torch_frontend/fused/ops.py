@@ -123,12 +123,22 @@ def _np_out(t: Tensor) -> np.ndarray:
 
 torch.library.define("torch_frontend::pyramid", "(Tensor img, int max_level, int pad) -> Tensor")
 
+#: the packed pyramid's smallest border on every device: pyrDown reads 2 pixels out, the CPU kernel's
+#: 16-byte loads one more
+MIN_PAD = 3
+
+
+def _check_pad(pad: int) -> None:
+    if pad < MIN_PAD:
+        raise ValueError(f"torch_frontend::pyramid: pad must be >= {MIN_PAD}, got {pad}")
+
 
 @torch.library.impl("torch_frontend::pyramid", "cpu")
 def _pyramid_cpu(img: Tensor, max_level: int, pad: int) -> Tensor:
     """The packed pyramid ``(B, total)`` uint8 of ``img (B, H, W)`` uint8 (CPU kernel: numba)."""
     from ._numba_pyramid import pyramid_streams
 
+    _check_pad(pad)
     B, H, W = img.shape
     sizes, offs, _, _, total = layout_arrays(H, W, max_level, pad)
     out = torch.empty((B, total), dtype=torch.uint8, device=img.device)
@@ -147,6 +157,7 @@ def _pyramid_fake(img, max_level, pad):
 def _pyramid_cuda(img, max_level, pad):
     from ._triton_pyramid import pyramid_cuda
 
+    _check_pad(pad)
     return pyramid_cuda(img.contiguous(), max_level, pad)
 
 
