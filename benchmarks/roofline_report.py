@@ -146,6 +146,17 @@ def render(argv: List[str]) -> int:
         g = lambda k, fmt, s0=s0, s1=s1: _arrow(s0.get(k), s1.get(k), fmt)  # noqa: E731
         lines.append(f"| {B} | {g('kernels', ',.0f')} | {g('gb', '.2f')} | {g('mb_stream', ',.0f')} | "
                      f"{g('graph_ms', '.2f')} | {g('frame_ms', '.3f')} | {g('x_opencv', '.1f')} | {g('peak_gib', '.2f')} |")
+    fused = [(B, after[B]["totals"]) for B in Bs if B in after and after[B]["totals"].get("fused_kernels")]
+    if fused:
+        lines += ["", f"**Lower bounds.** The {a.after_label} step's fused custom ops (`torch_frontend::pyramid`,",
+                  "`torch_frontend::lk`: every LK level and iteration of every point in one kernel, docs/kernels.md)",
+                  "are modelled as their inputs read and outputs written once, with no compute and no latency",
+                  "(the tool's rule for custom ops): a **lower bound** of their time, and so of every figure that",
+                  "includes them, until a GPU measures them (`benchmarks/gpu.sh`). Their share, per step:", "",
+                  "| B | fused kernels | MB | graph ms (of the step's) |", "|---|---|---|---|"]
+        for B, t in fused:
+            lines.append(f"| {B} | {t['fused_kernels']:,.0f} | {t['fused_bytes'] / MB:,.1f} | "
+                         f"{t.get(f'{DEVICE}:graph:fused', 0) * 1e3:.3f} (of {t[f'{DEVICE}:graph'] * 1e3:.2f}) |")
     for B in Bs:
         st0 = _stages(before[B]) if B in before else {}
         st1 = _stages(after[B]) if B in after else {}
