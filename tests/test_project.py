@@ -104,7 +104,11 @@ def _import_everything():
 
     import torch_frontend as tf
 
+    # modules of optional extras (the CUDA kernels need Triton: `pip install -e ".[triton]"`)
+    optional = {"torch_frontend.fused._triton_lk": "triton", "torch_frontend.fused._triton_pyramid": "triton"}
     for m in pkgutil.walk_packages(tf.__path__, "torch_frontend."):
+        if m.name in optional and importlib.util.find_spec(optional[m.name]) is None:
+            continue
         importlib.import_module(m.name)
     tr = tf.FeatureTracker(tf.load_config(REPO / "configs" / "euroc.yaml"))
     tr.track(torch.zeros(1, 1, 480, 752, dtype=torch.uint8), [0.0])
