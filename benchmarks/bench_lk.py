@@ -120,7 +120,8 @@ def main(argv=None):
                 if lk == "tensor" and (B == 64 or (args.quick and (n == 1000 or B > 1))):
                     continue
                 idx, prev, nxt, pts = _inputs(frames, pts_by_n, n, B, device)
-                record("images", lk, n, B, lambda prev=prev, nxt=nxt, pts=pts, lk=lk: track_lk(prev, nxt, pts, lk_backend=lk),
+                record("images", lk, n, B,
+                       lambda prev=prev, nxt=nxt, pts=pts, lk=lk: track_lk(prev, nxt, pts, lk_backend=lk),
                        cv_calls(idx, n))
     if args.compile:
         for B in (1, 8):

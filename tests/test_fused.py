@@ -52,8 +52,8 @@ def _cv(a, b, pts, max_level=3, win=(21, 21), init=None):
     flags, guess = 0, None
     if init is not None:
         flags, guess = cv2.OPTFLOW_USE_INITIAL_FLOW, init.reshape(-1, 1, 2).astype(np.float32).copy()
-    out, st, _ = cv2.calcOpticalFlowPyrLK(a, b, np.ascontiguousarray(pts).reshape(-1, 1, 2), guess, winSize=win, maxLevel=max_level,
-                                          criteria=CRIT, flags=flags)
+    out, st, _ = cv2.calcOpticalFlowPyrLK(a, b, np.ascontiguousarray(pts).reshape(-1, 1, 2), guess, winSize=win,
+                                          maxLevel=max_level, criteria=CRIT, flags=flags)
     return out.reshape(-1, 2), st.ravel().astype(bool)
 
 

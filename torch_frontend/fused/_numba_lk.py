@@ -34,7 +34,23 @@ import math
 import numpy as np
 from numba import njit
 
-from ._simd import f4_add, f4_hsum, f4_mul, f4_zero, i4_load, i4_to_f4, i8_add, i8_load, i8_mul, i8_pairsum, i8_splat, i8_sra, i8_store, i8_sub, u8_load8
+from ._simd import (
+    f4_add,
+    f4_hsum,
+    f4_mul,
+    f4_zero,
+    i4_load,
+    i4_to_f4,
+    i8_add,
+    i8_load,
+    i8_mul,
+    i8_pairsum,
+    i8_splat,
+    i8_sra,
+    i8_store,
+    i8_sub,
+    u8_load8,
+)
 
 __all__ = ["lk_streams"]
 
@@ -254,7 +270,8 @@ def _track(P, offs_p, wp_p, Q, offs_q, wp_q, sizes, px, py, has_start, sx, sy, t
                     status = False
                 stopped = True
                 break
-            b1, b2 = _mismatch(Q, offs_q[L], wp_q[L], int(fx), int(fy), ww, wh, cx - fx, cy - fy, I, GX, GY, tail)
+            b1, b2 = _mismatch(Q, offs_q[L], wp_q[L], int(fx), int(fy), ww, wh, cx - fx, cy - fy, I, GX, GY,
+                               tail)
             dx = (A12 * b2 - A22 * b1) * Dinv
             dy = (A12 * b1 - A11 * b2) * Dinv
             cx = cx + dx

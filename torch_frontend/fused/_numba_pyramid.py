@@ -80,7 +80,8 @@ def _hsum(row, base, dw, out):
     else:
         for x in range(dw):
             q = base + 2 * x - 2
-            out[x] = (np.int32(row[q]) + np.int32(row[q + 4]) + np.int32(4) * (np.int32(row[q + 1]) + np.int32(row[q + 3]))
+            out[x] = (np.int32(row[q]) + np.int32(row[q + 4])
+                      + np.int32(4) * (np.int32(row[q + 1]) + np.int32(row[q + 3]))
                       + np.int32(6) * np.int32(row[q + 2]))
 
 
@@ -107,7 +108,8 @@ def _pyr_down(row, src_off, sh, sw, dst_off, dh, dw, pad, hb):
             for bi in range((dw + 7) // 8):
                 x0 = min(bi * 8, last)
                 v = i8_add(i8_add(i8_load(h0, x0), i8_load(h4, x0)),
-                           i8_add(i8_mul(i8_add(i8_load(h1, x0), i8_load(h3, x0)), four), i8_mul(i8_load(h2, x0), six)))
+                           i8_add(i8_mul(i8_add(i8_load(h1, x0), i8_load(h3, x0)), four),
+                                  i8_mul(i8_load(h2, x0), six)))
                 u8_store8(row, d + x0, i8_sra(i8_add(v, half), 8))
         else:
             for x in range(dw):

@@ -200,7 +200,8 @@ def u8_load_even8(typingctx, arr, idx):
     (reads ``arr[idx:idx + 16]``) and a shuffle."""
     def cg(context, builder, sig, args):
         v = builder.load(_ptr(context, builder, sig.args[0], args[0], args[1], _U8x16), align=1)
-        e = builder.shuffle_vector(v, ir.Constant(_U8x16, None), ir.Constant(_I8, [0, 2, 4, 6, 8, 10, 12, 14]))
+        evens = ir.Constant(_I8, [0, 2, 4, 6, 8, 10, 12, 14])
+        e = builder.shuffle_vector(v, ir.Constant(_U8x16, None), evens)
         return builder.zext(e, _I8)
     return I32x8(arr, idx), cg
 
