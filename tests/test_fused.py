@@ -437,3 +437,21 @@ def test_fused_lk_not_taken_outside_its_setting():
         assert len(calls) == 1
     opts = dataclasses.replace(tf.lk.LKOptions(backend="fused"), iter_budget=5)
     assert not fused_path.fused_applies(build_pyramid(a, 3), build_pyramid(b, 3), pts, None, opts)
+
+
+def test_ranks_that_resolve_other_kernels_refuse_to_start(monkeypatch):
+    """``torchrun``: every rank resolves the backend and gathers the others'; one rank without numba
+    (the tensor LK) would give other bits, so every rank raises before any work, naming them."""
+    from torch_frontend.pipelines.common import OptionError
+    from torch_frontend.pipelines.sharded import _same_lk_backend
+
+    class Job:
+        def __init__(self, every):
+            self.every = every
+
+        def all_gather(self, obj):
+            return self.every
+
+    _same_lk_backend(Job(["fused", "fused"]), None, torch.device("cpu"))
+    with pytest.raises(OptionError, match="rank 0: fused, rank 1: tensor"):
+        _same_lk_backend(Job(["fused", "tensor"]), None, torch.device("cpu"))
