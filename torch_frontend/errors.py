@@ -38,3 +38,9 @@ class DataError(ValueError):
     The message says what is wrong and where (file, folder, bag, topic); the CLI prints it as one
     line and exits with a non-zero code.
     """
+
+
+class BadFrameError(DataError):
+    """A frame that cannot be read (a missing, truncated or corrupt image file, an undecodable
+    message) stopped a run. The readers skip such frames with ``skip_bad=True`` (the pipelines'
+    ``skip_bad_frames``, the CLI's ``--skip-bad-frames``), and the message says so."""

@@ -82,7 +82,12 @@ def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
     msg = str(exc)
     flag = flags.get(exc.option)
     msg = flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
-    # an option named inside the message (library style: in backticks) -> its flag
+    return _flags_in(msg, flags)
+
+
+def _flags_in(msg: str, flags: Dict[str, str]) -> str:
+    """Every option named in ``msg`` in backticks (the library's style: "`skip_bad_frames` skips
+    unreadable frames") replaced by the command's flag; other backticked words are kept."""
     return re.sub(r"`([a-z_]+)`", lambda m: flags.get(m.group(1), m.group(0)), msg)
 
 
@@ -195,8 +200,8 @@ def main(argv: List[str] | None = None) -> int:
     except RankFailure as exc:
         error(exc, f"{exc}; no merged summary written")
         return exc.exit_code
-    except DataError as exc:
-        error(exc, str(exc))
+    except DataError as exc:  # a bad frame names `skip_bad_frames`: the line names --skip-bad-frames
+        error(exc, _flags_in(str(exc), getattr(args, "flags", {})))
         return EXIT_DATA
     except JobAborted as exc:
         if not exc.quiet:

@@ -13,8 +13,9 @@ from .common import SAMPLE_DIR, _rank, _UsageError, default_config_path
 # printing
 
 
-def format_summary(s: Dict[str, Any]) -> str:
-    """The few lines ``track``/``demo`` print (``s``: the summary of ``run_track``)."""
+def format_summary(s: Dict[str, Any], tracks: bool = True) -> str:
+    """The few lines ``track``/``demo`` print (``s``: the summary of ``run_track``; ``tracks``:
+    whether the run drew ``tracks/``, i.e. not ``--no-tracks``)."""
     lines = [
         f"streams       {s['streams']}   frames {s['frames']}   steps {s.get('steps', '?')}   "
         f"published frames {s['published']}",
@@ -34,12 +35,13 @@ def format_summary(s: Dict[str, Any]) -> str:
     if dist:
         lines.append(f"ranks         {dist['world_size']} ({dist['backend']}): "
                      + ", ".join(f"rank {r['rank']} {len(r['streams'])} streams" for r in dist["ranks"]))
+    t = ", tracks/" if tracks else ""
     if "out" in s and dist:
         lines.append(f"outputs       {s['out']}/ (stream<b>/ per input: features.csv, features.npz, summary.json, "
-                     f"plots, tracks/; index.json, summary.json)")
+                     f"plots{t}; index.json, summary.json)")
     elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
-                     f"features_per_frame.png, track_length_hist.png, track_paths.png, tracks/)")
+                     f"features_per_frame.png, track_length_hist.png, track_paths.png{t})")
     return "\n".join(lines)
 
 
@@ -214,9 +216,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
         summary = run_track_sharded(config, sources, args.out, opt, timeout=args.timeout)
         if summary is not None:  # rank 0
-            print(format_summary(summary))
+            print(format_summary(summary, tracks=not args.no_tracks))
         return 0
-    print(format_summary(run_track(config, sources, args.out, opt)))
+    print(format_summary(run_track(config, sources, args.out, opt), tracks=not args.no_tracks))
     return 0
 
 
@@ -277,7 +279,7 @@ def _cmd_demo_flight(args: argparse.Namespace) -> int:
     print(cfg.settings_line())
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
-    print(format_summary(run_track(cfg, sources, out, opt)))
+    print(format_summary(run_track(cfg, sources, out, opt), tracks=not args.no_tracks))
     return 0
 
 
@@ -298,7 +300,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
-    print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
+    print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt), tracks=not args.no_tracks))
     return 0
 
 

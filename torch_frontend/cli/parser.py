@@ -11,7 +11,7 @@ from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocab
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
-                "camera": "--camera", "workers": "--workers"}
+                "camera": "--camera", "workers": "--workers", "skip_bad_frames": "--skip-bad-frames"}
 _TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
                 "checkpoint_every": "--checkpoint-every", "resume": "--resume", "lk_backend": "--lk-backend"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode",

@@ -37,7 +37,7 @@ from typing import Sequence as Seq
 import numpy as np
 import torch
 
-from ..errors import DataError
+from ..errors import BadFrameError, DataError
 from ..io.multistream import Batch, MultiStream, lockstep, ns_to_seconds, padded_shape, stack_images
 
 __all__ = ["FrameStream", "DEFAULT_PREFETCH"]
@@ -237,8 +237,8 @@ class FrameStream(MultiStream):
                     return Frame(s[1], s[2], img, s[3])
                 if s[0] == _RAISE:
                     raise s[1]
-                if not getattr(seq, "skip_bad", False):
-                    raise DataError(s[2])
+                if not getattr(seq, "skip_bad", False):  # the option's name: the CLI maps it to its flag
+                    raise BadFrameError(f"{s[2]}; `skip_bad_frames` skips unreadable frames (listed in the summary)")
                 self._skipped[b].append((s[1], s[2]))
 
         try:
