@@ -331,3 +331,11 @@ def _cmd_vocabulary(args: argparse.Namespace) -> int:
     print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
           f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
     return 0
+
+
+def _cmd_config(args: argparse.Namespace) -> int:
+    from ..pipelines.make_config import format_make_config, run_make_config
+
+    print(format_make_config(run_make_config(args.out, kalibr=args.from_kalibr, camera_info=args.from_camera_info,
+                                             imu=args.imu)))
+    return 0

@@ -7,7 +7,7 @@ import argparse
 import math
 from pathlib import Path
 
-from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocabulary
+from .commands import _cmd_compare, _cmd_config, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocabulary
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
@@ -24,6 +24,7 @@ _LOOP_FLAGS = {
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
     "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
 }
+_CONFIG_FLAGS = {"kalibr": "--from-kalibr", "camera_info": "--from-camera-info", "imu": "--imu", "out": "--out"}
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
                      "device": "--device"}
@@ -340,12 +341,38 @@ def _add_vocabulary(sub) -> None:
     vocab.set_defaults(func=_cmd_vocabulary, flags=_VOCABULARY_FLAGS)
 
 
+def _add_config(sub) -> None:
+    """``config``: a VINS config from calibration files."""
+    cfg = sub.add_parser(
+        "config",
+        help="write a VINS config from a Kalibr camchain or a ROS camera_info YAML",
+        description="Write a VINS config from calibration files: one camera gives a VINS-Mono config, two a "
+                    "VINS-Fusion config (FILE and FILE_cam0.yaml, FILE_cam1.yaml beside it). Kalibr pinhole-radtan "
+                    "-> PINHOLE, pinhole-equi -> KANNALA_BRANDT, omni-radtan -> MEI (ds, eucm and fov have no "
+                    "camodocal model: refused); camchain-imucam.yaml's T_cam_imu becomes VINS's body <- camera "
+                    "extrinsic; camera_info: plumb_bob (k3 = 0) -> PINHOLE, equidistant -> KANNALA_BRANDT. Every "
+                    "other key at VINS's defaults. A file that exists is replaced only when this command wrote it.",
+        epilog="example: torch-frontend config --from-kalibr camchain-imucam.yaml --imu imu.yaml --out my_vins.yaml",
+    )
+    src = cfg.add_mutually_exclusive_group(required=True)
+    src.add_argument("--from-kalibr", type=Path, default=None, metavar="CAMCHAIN",
+                     help="Kalibr's camchain.yaml or camchain-imucam.yaml (1 or 2 cameras)")
+    src.add_argument("--from-camera-info", type=Path, default=None, metavar="YAML",
+                     help="a ROS camera_calibration camera_info YAML (ost.yaml; one camera)")
+    cfg.add_argument("--imu", type=Path, default=None, metavar="IMU_YAML",
+                     help="Kalibr's imu.yaml: the IMU noise (acc_n, gyr_n, acc_w, gyr_w) and imu_topic "
+                          "(default: VINS's EuRoC values)")
+    cfg.add_argument("--out", type=Path, default=Path("vins_config.yaml"), metavar="FILE",
+                     help="the config file to write (default: vins_config.yaml)")
+    cfg.set_defaults(func=_cmd_config, flags=_CONFIG_FLAGS)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torch-frontend",
         description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare):
+    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare, _add_config):
         add(sub)
     return parser
