@@ -6,6 +6,7 @@ read ``../shared/data`` (beside the repo in CI) and skip, saying so, when it is 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -14,7 +15,10 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini"
 TEST_DATA = REPO / "tests" / "data"
-SHARED_DATA = REPO.parent / "shared" / "data"
+# ../shared (real data and tools beside the repo; TORCH_FRONTEND_SHARED=DIR: elsewhere, or a missing
+# folder to run as a fresh clone does)
+SHARED = Path(os.environ.get("TORCH_FRONTEND_SHARED") or REPO.parent / "shared")
+SHARED_DATA = SHARED / "data"
 
 # One thread for torch and OpenCV in the tests: the suite runs on 2-core machines (CI), where the
 # kernels' many small ops slow down by orders of magnitude when threads compete for the cores.
@@ -34,7 +38,8 @@ def shared_data_or_skip(*parts: str) -> Path:
     """Path under ``../shared/data``; skips the test with a clear reason when it is absent."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"../shared/data not found beside the repo (looked for {p}); this test needs it")
+        pytest.skip(f"../shared/data not found beside the repo (looked for {p}; TORCH_FRONTEND_SHARED=DIR points "
+                    f"elsewhere); this test needs it")
     return p
 
 

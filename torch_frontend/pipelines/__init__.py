@@ -7,6 +7,8 @@
   a rendered revisiting sequence (``demo_sequence``). Its middle stages are ``loop_stages``.
 * ``vocabulary``: :func:`run_vocabulary_train` (:class:`VocabularyOptions`) and
   :func:`load_vocabulary` (the package's ``.npz``, VINS's ``.bin``, DBoW2 YAML).
+* ``config``: :func:`run_make_config` (``make_config``): a VINS config from Kalibr / camera_info
+  calibration files (``torch_frontend.calibration``).
 * shared: ``inputs`` (``resolve_configs``: one config per source, each ``euroc`` source's own
   ``sensor.yaml`` by default; ``open_inputs`` for ``(kind, path[, options])`` sources,
   ``ArraySequence``), ``rig`` (``read_rig``: a rig file's inputs and their configs), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
@@ -51,6 +53,7 @@ _EXPORTS = {
     "demo_sequence": "loop",
     "extrinsic_from_config": "loop",
     "run_loop": "loop",
+    "run_make_config": "make_config",
     "VocabularyOptions": "vocabulary",
     "load_vocabulary": "vocabulary",
     "run_vocabulary_train": "vocabulary",
