@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from tests.conftest import SAMPLE, load_gray, sample_frames, shared_data_or_skip
-from torch_frontend.errors import DataWarning
+from torch_frontend.errors import BadFrameError, DataWarning
 from torch_frontend.io import (
     DataError,
     EurocSequence,
@@ -142,8 +142,9 @@ def test_euroc_skip_bad_frames(tmp_path):
     root = make_asl(tmp_path / "seq", n=4)
     bad = sorted((root / "mav0" / "cam0" / "data").glob("*.png"))[1]
     truncate(bad)
-    with pytest.raises(DataError, match=bad.name):
+    with pytest.raises(BadFrameError, match=bad.name) as e:  # a DataError that names the option going on
         list(EurocSequence(root))
+    assert isinstance(e.value, DataError) and "`skip_bad`" in str(e.value)
     seq = EurocSequence(root, skip_bad=True)
     frames = list(seq)
     assert [f.index for f in frames] == [0, 2, 3]

@@ -1,4 +1,5 @@
-"""The ``torch-frontend`` command line: ``track``, ``demo``, ``loop`` and ``vocabulary train``.
+"""The ``torch-frontend`` command line: ``track``, ``demo``, ``loop``, ``vocabulary train``, ``compare``
+and ``config``.
 
 This module does argparse and printing only: each command builds the options of a pipeline from
 its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
@@ -16,7 +17,9 @@ same on the sample EuRoC frames shipped with the package.
 their VIO poses and writes the loop-corrected trajectory, the loops, the pose graph, a summary and
 plots (``pipelines.loop.run_loop``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
 does the same on a rendered sequence that revisits places (``pipelines.loop.demo_loop``).
-``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``.
+``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``; ``torch-frontend
+config --from-kalibr camchain.yaml [--imu imu.yaml] --out FILE`` (or ``--from-camera-info``) writes a
+VINS config from calibration files (``pipelines.make_config``, ``torch_frontend.calibration``).
 
 Under ``torchrun`` (``torchrun --nproc-per-node N -m torch_frontend track|loop|vocabulary train
 ...``) every rank runs the command on its block of the inputs (``pipelines.sharded``): each rank on
@@ -29,7 +32,8 @@ or the user set ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` (:func:`_thread_policy
 itself never changes the process's threads), and restore the previous counts afterwards.
 
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
-wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
+wrong size, an empty sequence, a bad option value; a corrupt frame's line names ``--skip-bad-frames``)
+print one line ``torch-frontend: error: ...`` on
 stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
 130 when interrupted (Ctrl-C, SIGINT), 143 on SIGTERM. A pipeline's ``OptionError`` names its
 option; the line names the flag. Under ``torchrun`` an error every rank meets is printed by rank 0
@@ -198,7 +202,7 @@ def main(argv: List[str] | None = None) -> int:
         error(exc, _option_message(exc, getattr(args, "flags", {})))
         return EXIT_USAGE
     except RankFailure as exc:
-        error(exc, f"{exc}; no merged summary written")
+        error(exc, _flags_in(f"{exc}; no merged summary written", getattr(args, "flags", {})))
         return exc.exit_code
     except DataError as exc:  # a bad frame names `skip_bad_frames`: the line names --skip-bad-frames
         error(exc, _flags_in(str(exc), getattr(args, "flags", {})))

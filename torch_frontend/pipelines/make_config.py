@@ -84,7 +84,7 @@ def run_make_config(out: PathLike, *, kalibr: Optional[PathLike] = None, camera_
     for t in targets:
         if t.is_dir() or (t.exists() and not _ours(t)):
             raise OptionError("out", f"out: {t} exists and was not written by torch-frontend config: nothing written "
-                                     f"(give another --out, or remove it)")
+                                     f"(give another `out`, or remove it)")
     # load the files where nothing else is, with the project's loader (its camera factory): a
     # config it refuses is never written
     with tempfile.TemporaryDirectory(prefix="tf-config-") as tmp:
