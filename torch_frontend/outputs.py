@@ -589,6 +589,7 @@ class RunRecorder:
         from matplotlib.collections import LineCollection
         from matplotlib.colors import Normalize
         from matplotlib.figure import Figure
+        from mpl_toolkits.axes_grid1 import make_axes_locatable
 
         cmap = colormaps["coolwarm"]  # blue: short tracks, red: long ones (as the track images)
         cols = self.columns()
@@ -611,7 +612,8 @@ class RunRecorder:
                 ends = np.stack([p[-1] for p in paths])
                 ax.scatter(ends[:, 0], ends[:, 1], s=4, c=cmap(lengths / hi))
             # the colour scale: a track's length in published frames (0 .. the longest, at least 2)
-            bar = fig.colorbar(ScalarMappable(norm=Normalize(0.0, hi), cmap=cmap), ax=ax, fraction=0.046, pad=0.02)
+            cax = make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08)  # as tall as the image
+            bar = fig.colorbar(ScalarMappable(norm=Normalize(0.0, hi), cmap=cmap), cax=cax)
             bar.set_label("track length (published frames)", fontsize=8)
             h, w = self._size if self._size is not None else (1, 1)
             ax.set_xlim(0, w)
