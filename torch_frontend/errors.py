@@ -43,4 +43,11 @@ class DataError(ValueError):
 class BadFrameError(DataError):
     """A frame that cannot be read (a missing, truncated or corrupt image file, an undecodable
     message) stopped a run. The readers skip such frames with ``skip_bad=True`` (the pipelines'
-    ``skip_bad_frames``, the CLI's ``--skip-bad-frames``), and the message says so."""
+    ``skip_bad_frames``, the CLI's ``--skip-bad-frames``), and the message says so, naming the
+    option of the layer that raised it (:meth:`naming`)."""
+
+    @classmethod
+    def naming(cls, message: str, option: str) -> BadFrameError:
+        """``message`` and the option that skips such frames, in the library's style (backticks:
+        a front end puts its own spelling in its place): "... (`skip_bad` skips unreadable frames)"."""
+        return cls(f"{message} (`{option}` skips unreadable frames)")

@@ -98,7 +98,7 @@ class Sequence:
                 img = self._load(item)
             except DataError as exc:
                 if not self.skip_bad:
-                    raise BadFrameError(f"{exc} (`skip_bad` skips unreadable frames)") from exc
+                    raise BadFrameError.naming(str(exc), "skip_bad") from exc
                 self.skipped.append((item.source, str(exc)))
                 continue
             yield Frame(item.index, item.stamp_ns, img, item.source)

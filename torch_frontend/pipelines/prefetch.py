@@ -237,8 +237,8 @@ class FrameStream(MultiStream):
                     return Frame(s[1], s[2], img, s[3])
                 if s[0] == _RAISE:
                     raise s[1]
-                if not getattr(seq, "skip_bad", False):  # the option's name: the CLI maps it to its flag
-                    raise BadFrameError(f"{s[2]}; `skip_bad_frames` skips unreadable frames (listed in the summary)")
+                if not getattr(seq, "skip_bad", False):  # the pipelines' option: the CLI maps it to its flag
+                    raise BadFrameError.naming(s[2], "skip_bad_frames")
                 self._skipped[b].append((s[1], s[2]))
 
         try:
