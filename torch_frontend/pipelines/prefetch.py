@@ -8,7 +8,9 @@ Convention:
     others' items without decoding them), ``prefetch`` rows ahead each; rows come back in order
     (a small reorder buffer makes sure). This process builds the batches from the rows with
     ``MultiStream``'s rules, so the batches are the same as ``io.MultiStream``'s: the same steps,
-    ``alive`` masks, skipped frames (``skip_bad``), errors and messages, raised at the same step.
+    ``alive`` masks, skipped frames (``skip_bad``), errors and messages, raised at the same step (a
+    bad frame's ``BadFrameError`` names the pipelines' ``skip_bad_frames``, ``MultiStream``'s the
+    readers' ``skip_bad``).
     An error raised by a reader (not a bad frame) travels as the exception itself and is raised
     where ``MultiStream`` would raise it.
 
