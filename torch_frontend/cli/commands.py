@@ -329,3 +329,59 @@ def _cmd_vocabulary(args: argparse.Namespace) -> int:
     print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
           f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
     return 0
+
+
+def format_ros_summary(s: Dict[str, Any]) -> str:
+    """The lines ``ros`` prints on exit (``s``: the summary of ``pipelines.ros_node.run_ros_node``)."""
+
+    def lat(d: Dict[str, Any]) -> str:
+        if not d["n"]:
+            return "none"
+        return f"median {d['median']:.1f} ms, p95 {d['p95']:.1f} ms, max {d['max']:.1f} ms ({d['n']} frames)"
+
+    lines = [f"cameras       {len(s['cameras'])}   steps {s['steps']}   cameras per step "
+             f"{s['cameras_per_step'] if s['cameras_per_step'] is not None else '-'}   ({s['seconds']:.1f} s on "
+             f"{s['device']}, {s['lk_backend']} LK)",
+             f"frames        received {s['received']}, tracked {s['tracked']}, dropped {s['dropped']} (queue "
+             f"{s['queue_size']} per camera, the newest kept; sync wait {s['sync_wait_ms']:g} ms)",
+             f"latency       image received -> feature published: {lat(s['latency_ms'])}"]
+    for c in s["cameras"]:
+        lines.append(f"  {c['topic']} -> {c['outputs']}: {c['received']} received, {c['tracked']} tracked, "
+                     f"{c['dropped']} dropped, {c['feature_messages']} feature messages, {c['restarts']} restarts")
+    return "\n".join(lines)
+
+
+def _cmd_ros(args: argparse.Namespace) -> int:
+    """``ros``: configs and rospy's remapping arguments (``name:=value``) from the positionals."""
+    from ..pipelines.ros_node import RosCamera, RosOptions, run_ros_node
+
+    remap = [a for a in args.configs if ":=" in a]
+    cams = []
+    for a in args.configs:
+        if ":=" in a:
+            continue
+        path, topic = a, None
+        if "@" in a and not Path(a).is_file():
+            path, topic = a.rsplit("@", 1)
+            if not topic:
+                raise _UsageError(f"{a}: expected CONFIG@TOPIC, got an empty topic")
+        cams.append(RosCamera(Path(path), topic))
+    if not cams:
+        raise _UsageError("no CONFIG given (only remapping arguments: " + " ".join(remap) + ")")
+    for c in cams:
+        if not c.config.is_file():
+            raise _UsageError(f"config file not found: {c.config}")
+    opt = RosOptions(device=_device(args), lk_backend=args.lk_backend, queue_size=args.queue_size,
+                     sync_wait=args.sync_wait / 1e3, latency=args.latency,
+                     summary=None if args.summary is None else str(args.summary), remap=remap,
+                     max_frames=args.max_frames)
+
+    def ready(node) -> None:
+        names = ", ".join(f"{t} -> {node.rospy.names.resolve_name(p + 'feature')}"
+                          for t, p in zip(node.topics, node.prefixes))
+        import rosgraph
+
+        print(f"ros           node {node.rospy.get_name()} (master {rosgraph.get_master_uri()}): {names}", flush=True)
+
+    print(format_ros_summary(run_ros_node(cams, opt, ready=ready)))
+    return 0

@@ -7,7 +7,7 @@ import argparse
 import math
 from pathlib import Path
 
-from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocabulary
+from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_ros, _cmd_track, _cmd_vocabulary
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
@@ -24,6 +24,8 @@ _LOOP_FLAGS = {
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
     "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
 }
+_ROS_FLAGS = {"device": "--device", "lk_backend": "--lk-backend", "queue_size": "--queue-size",
+              "sync_wait": "--sync-wait", "max_frames": "--max-frames", "cameras": "CONFIG"}
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
                      "device": "--device"}
@@ -303,6 +305,54 @@ def _add_compare(sub) -> None:
                                                 "num_cameras": "--num-cameras"})
 
 
+def _non_negative_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {s}")
+    return v
+
+
+def _add_ros(sub) -> None:
+    """``ros``: the live ROS 1 node (``pipelines.ros_node``)."""
+    ros = sub.add_parser(
+        "ros",
+        help="live ROS 1 node: VINS-Mono's feature_tracker_node for one or more cameras (docs/ros.md)",
+        description="Subscribe to each camera's image topic and publish VINS's feature, feature_img and restart "
+                    "topics live (the master from ROS_MASTER_URI). One CONFIG: /feature_tracker/feature, "
+                    "/feature_tracker/feature_img, /feature_tracker/restart, as VINS-Mono's node; several: one "
+                    "batched tracker, each camera's topics under its image topic's namespace "
+                    "(/cam0/image_raw -> /cam0/feature_tracker/feature). Runs until Ctrl-C or SIGTERM (exit 0) "
+                    "and prints a summary (frames, drops, latency). ROS remapping arguments (name:=value, "
+                    "__ns:=NS, __name:=NAME) go to rospy.",
+        epilog="example: torch-frontend ros configs/euroc.yaml   (beside rosrun vins_estimator ...; "
+               "two cameras: torch-frontend ros a.yaml@/cam0/image_raw a.yaml@/cam1/image_raw)",
+    )
+    ros.add_argument("configs", nargs="+", metavar="CONFIG",
+                     help="VINS-Mono config of a camera, subscribed to its image_topic; CONFIG@TOPIC: to TOPIC "
+                          "instead (one config for several cameras)")
+    ros.add_argument("--device", default=None, help="cpu or cuda (default: cpu)")
+    ros.add_argument("--lk-backend", choices=("auto", "fused", "tensor"), default=None,
+                     help="the pyramid's and the LK's kernels (default auto; docs/kernels.md)")
+    ros.add_argument("--queue-size", type=_positive_int, default=4, metavar="N",
+                     help="frames queued per camera at most; a frame arriving at a full queue drops the oldest "
+                          "(default: 4)")
+    ros.add_argument("--sync-wait", type=_non_negative_float, default=0.0, metavar="MS",
+                     help="with several cameras: a step waits up to MS milliseconds for every camera to have a "
+                          "frame (default: 0, step with the cameras that have one)")
+    ros.add_argument("--latency", action="store_true",
+                     help="publish each frame's latency on <prefix>/latency (std_msgs/Float64MultiArray: stamp_sec, "
+                          "stamp_nsec, latency_ms, median_ms, p95_ms, max_ms, dropped, sent, restarted)")
+    ros.add_argument("--summary", type=Path, default=None, metavar="FILE",
+                     help="also write the exit summary as JSON into FILE")
+    ros.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
+                     help="stop after N tracked frames in all (default: until stopped)")
+    _add_threads(ros)
+    ros.set_defaults(func=_cmd_ros, flags=_ROS_FLAGS)
+
+
 def _add_vocabulary(sub) -> None:
     """``vocabulary train``."""
     vocab = sub.add_parser(
@@ -346,6 +396,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare):
+    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare, _add_ros):
         add(sub)
     return parser
