@@ -143,7 +143,8 @@ def _drive(spec: dict) -> dict:
     spec: ``cameras``: ``[{"topic", "outputs" (prefix of the node's topics, e.g.
     "/feature_tracker/")}]``; ``frames``: ``[round: [(camera, stamp_ns, grey (H, W) uint8, encoding)]]``;
     ``wait``: ``"round"`` (after each round, wait for one ``latency`` message per frame of it: the
-    node runs with ``--latency``) or ``"none"`` (publish everything at once); ``latency``: subscribe
+    node runs with ``--latency``) or ``"none"`` (publish without waiting: at once, or at ``rate``
+    rounds per second when given); ``latency``: subscribe
     to the ``latency`` topics (default True); ``settle``: seconds to wait for trailing messages at
     the end.
     Returns ``{"feature": [per camera: [(stamp_ns, seq, points (M, 3) f32, [5 x (M,) f32],
@@ -202,10 +203,15 @@ def _drive(spec: dict) -> dict:
         time.sleep(0.05)
     time.sleep(0.3)  # the connections' headers exchanged both ways
     sent_per_cam = [0] * len(cams)
-    for rnd in spec["frames"]:
+    rate, t_start = spec.get("rate"), time.perf_counter()
+    for k, rnd in enumerate(spec["frames"]):
+        if rate:  # a camera rate: round k at t_start + k / rate (wall clock), whatever the node does
+            time.sleep(max(0.0, t_start + k / rate - time.perf_counter()))
         for b, stamp_ns, grey, enc in rnd:
             from tests._ros import image_msg_fields
 
+            if isinstance(grey, int):  # an index into spec["pool"] (a benchmark's many rounds)
+                grey = spec["pool"][grey]
             stamp = rospy.Time(int(stamp_ns) // 10**9, int(stamp_ns) % 10**9)
             pubs[b].publish(Image(header=Header(stamp=stamp, frame_id="cam"), **image_msg_fields(grey, enc)))
             sent_per_cam[b] += 1

@@ -11,7 +11,6 @@ of frames and waits for the node's per-frame ``latency`` message of each before 
 from __future__ import annotations
 
 import json
-import os
 import signal
 import types
 
@@ -19,7 +18,7 @@ import numpy as np
 import pytest
 
 from . import _ros
-from .conftest import REPO, load_gray, sample_frames
+from .conftest import REPO, load_gray, ros_skip, sample_frames
 
 EUROC = REPO / "configs" / "euroc.yaml"
 
@@ -87,7 +86,7 @@ def test_missing_rospy_is_one_line_naming_the_packages(monkeypatch, capsys):
 
 def test_no_master_names_ros_master_uri(monkeypatch, capsys):
     if (why := _ros.ros_missing()) is not None:
-        _skip(why)
+        ros_skip(why)
     from torch_frontend.cli import main
 
     uri = f"http://127.0.0.1:{_ros.free_port()}"
@@ -106,12 +105,6 @@ def test_remapping_arguments_are_not_configs(capsys):
 
 # ----------------------------------------------------------------------------------------------
 # against a real roscore
-
-
-def _skip(why: str):
-    if os.environ.get("TORCH_FRONTEND_REQUIRE_ROS") == "1":
-        pytest.fail(f"ROS 1 required (TORCH_FRONTEND_REQUIRE_ROS=1) but missing: {why}")
-    pytest.skip(f"ROS 1 missing: {why}")
 
 
 def _frames(camera: str, n: int, crop=None):
@@ -156,7 +149,7 @@ def _assert_equal_to_offline(live_feature, live_latency, ref):
         "the published-frame pattern differs"
     seqs = [f[1] for f in live_feature]  # rospy numbers them itself
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) if seqs else True
-    for s, seq, pts, ch, frame_id, names in live_feature:
+    for s, _seq, pts, ch, frame_id, names in live_feature:
         rp, rch, rfid, rnames = feats[s]
         assert (frame_id, names) == (rfid, rnames)
         assert pts.shape == rp.shape and np.array_equal(pts, rp), s
@@ -166,16 +159,6 @@ def _assert_equal_to_offline(live_feature, live_latency, ref):
     assert [int(a) * 10**9 + int(b) for a, b in lat[:, :2]] == [int(s) for s in stamps]
     assert [int(s) for s, flag in zip(stamps, lat[:, 7]) if flag] == got
     assert sorted(int(s) for s, flag in zip(stamps, lat[:, 8]) if flag) == sorted(restarts)
-
-
-@pytest.fixture(scope="module")
-def ros_master():
-    """A private roscore for this module (its environment), or a skip saying what is missing."""
-    why = _ros.ros_missing()
-    if why is not None:
-        _skip(why)
-    with _ros.roscore() as env:
-        yield env
 
 
 def test_one_camera_equals_the_offline_bag(ros_master, tmp_path):
