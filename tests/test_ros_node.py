@@ -280,3 +280,22 @@ def test_drop_policy_keeps_the_newest_and_counts(ros_master, tmp_path):
     tracked = [int(a) * 10**9 + int(b) for a, b, *_ in res["latency"][0]]
     assert tracked == sorted(tracked) and tracked[-1] == int(stamps[-1])
     assert f"dropped {s['dropped']} frames in the last" in err or "dropped" in err
+
+
+@pytest.mark.slow
+def test_remapping_namespace_and_node_name(ros_master, tmp_path):
+    """``__ns:=`` and ``__name:=`` go to rospy: the outputs move with them; a topic remap moves the
+    subscription."""
+    imgs, stamps = _frames("cam0", 3)
+    summary = tmp_path / "summary.json"
+    node = _ros.start_node(ros_master, [EUROC, "__ns:=/uav1", "__name:=front", "/cam0/image_raw:=/uav1/image",
+                                        "--latency", "--summary", summary])
+    try:
+        spec = {"cameras": [{"topic": "/uav1/image", "outputs": "/uav1/front/"}],
+                "frames": [[(0, int(s), im, "mono8")] for s, im in zip(stamps, imgs)]}
+        res = _ros.drive(ros_master, spec)
+    finally:
+        rc, out, err = _ros.stop_node(node, signal.SIGTERM)
+    assert rc == 0, err
+    assert len(res["latency"][0]) == 3 and len(res["feature"][0]) == 1  # frames 2 published and sent
+    assert json.loads(summary.read_text())["cameras"][0]["outputs"] == "/uav1/front/feature"

@@ -12,7 +12,8 @@ Convention:
       (``/cam0/image_raw`` -> ``/cam0/feature_tracker/feature``).
     * **Messages** (``io.ros_messages``): ``restart`` on the image that restarted the clock,
       ``feature`` on every frame the tracker *sends* (``FeatureFrame.sent``: FREQ, the first
-      published frame not sent), ``feature_img`` on published frames while someone subscribes:
+      published frame not sent), ``feature_img`` on published frames with the config's
+      ``show_track`` (drawn only while someone subscribes):
       what ``track --write-bag`` writes for the same images, field for field but ``header.seq``.
     * **Steps**: a step takes the oldest queued frame of every camera that has one (the others
       are inactive, ``active=``: left exactly as they were); with ``sync_wait`` > 0 it first waits
@@ -200,7 +201,7 @@ class _Queued:
 class _Node:
     """The running node's state (module docstring); :func:`run_ros_node` drives it."""
 
-    def __init__(self, rospy, cfgs, topics: List[str], opt: RosOptions, tracker, device):
+    def __init__(self, rospy, cfgs, topics: List[str], opt: RosOptions, tracker, device, stop: threading.Event):
         from ..io.ros_messages import image_to_grey
 
         self.rospy, self.cfgs, self.topics, self.opt = rospy, cfgs, topics, opt
@@ -219,7 +220,7 @@ class _Node:
         self.latency_all: List[List[float]] = [[] for _ in range(self.B)]
         self.steps = 0
         self.fatal: Optional[BaseException] = None
-        self.stop = threading.Event()
+        self.stop = stop
         self._last_ns = np.zeros(self.B, dtype=np.int64)
         self._blank = [np.zeros((c.image_height, c.image_width), dtype=np.uint8) for c in cfgs]
         self._to_grey = image_to_grey
@@ -319,7 +320,7 @@ class _Node:
             if sent[b]:
                 self.pub_feature[b].publish(point_cloud_msg(feature_message(frame, b, it.stamp_ns), it.stamp))
                 self.sent[b] += 1
-            if published[b] and self.pub_img[b].get_num_connections() > 0:
+            if published[b] and self.cfgs[b].show_track and self.pub_img[b].get_num_connections() > 0:
                 from ..viz import draw_tracks
 
                 self.pub_img[b].publish(feature_image_msg(draw_tracks(it.image, frame, b), it.stamp))
@@ -428,7 +429,9 @@ def run_ros_node(cameras: Sequence[RosCamera], options: Optional[RosOptions] = N
             cfgs.append(c.config)
         else:
             key = str(Path(c.config).resolve())
-            cfgs.append(loaded.setdefault(key, load_config(c.config)))
+            if key not in loaded:
+                loaded[key] = load_config(c.config)
+            cfgs.append(loaded[key])
     topics = []
     for b, (c, cfg) in enumerate(zip(cameras, cfgs)):
         t = c.topic or cfg.image_topic
@@ -446,38 +449,37 @@ def run_ros_node(cameras: Sequence[RosCamera], options: Optional[RosOptions] = N
 
         rospy.names._set_caller_id(rosgraph.names.make_global_ns(ns[-1]) + "unnamed")
     check_master()
-    _warm_up(cfgs, dev, opt.lk_backend)
-    tracker = make_tracker(cfgs, dev, "mono", opt.lk_backend)
-    rospy.init_node(opt.node_name, argv=[sys.argv[0], *remap], disable_signals=True)
-    node = _Node(rospy, cfgs, topics, opt, tracker, dev)
-    if ready is not None:
-        ready(node)
+    stopping = threading.Event()  # SIGINT / SIGTERM from here on: stop between two steps, exit 0
     saved = {}
-
-    def stop(signum, frame):
-        node.stop.set()
-
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
-            saved[sig] = signal.signal(sig, stop)
-    t0 = time.perf_counter()
+            saved[sig] = signal.signal(sig, lambda signum, frame: stopping.set())
     try:
-        while True:
-            items = node.next_step()
-            if items is None:
-                break
-            node.track(items)
-            node.warn_drops()
-            if opt.max_frames is not None and sum(node.tracked) >= opt.max_frames:
-                break
+        _warm_up(cfgs, dev, opt.lk_backend)
+        tracker = make_tracker(cfgs, dev, "mono", opt.lk_backend)
+        rospy.init_node(opt.node_name, argv=[sys.argv[0], *remap], disable_signals=True)
+        node = _Node(rospy, cfgs, topics, opt, tracker, dev, stopping)
+        if ready is not None:
+            ready(node)
+        t0 = time.perf_counter()
+        try:
+            while True:
+                items = node.next_step()
+                if items is None:
+                    break
+                node.track(items)
+                node.warn_drops()
+                if opt.max_frames is not None and sum(node.tracked) >= opt.max_frames:
+                    break
+        finally:
+            node.warn_drops(force=True)
+            for s in node.subs:
+                s.unregister()
+            summary = node.summary(time.perf_counter() - t0)
+            rospy.signal_shutdown("torch-frontend ros: stopped")
+            if opt.summary:
+                _write_json(opt.summary, summary)
     finally:
         for sig, prev in saved.items():
             signal.signal(sig, prev)
-        node.warn_drops(force=True)
-        for s in node.subs:
-            s.unregister()
-        summary = node.summary(time.perf_counter() - t0)
-        rospy.signal_shutdown("torch-frontend ros: stopped")
-        if opt.summary:
-            _write_json(opt.summary, summary)
     return summary
