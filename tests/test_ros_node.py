@@ -286,7 +286,7 @@ def test_drop_policy_keeps_the_newest_and_counts(ros_master, tmp_path):
 def test_remapping_namespace_and_node_name(ros_master, tmp_path):
     """``__ns:=`` and ``__name:=`` go to rospy: the outputs move with them; a topic remap moves the
     subscription."""
-    imgs, stamps = _frames("cam0", 3)
+    imgs, stamps = _frames("cam0", 5)
     summary = tmp_path / "summary.json"
     node = _ros.start_node(ros_master, [EUROC, "__ns:=/uav1", "__name:=front", "/cam0/image_raw:=/uav1/image",
                                         "--latency", "--summary", summary])
@@ -297,5 +297,5 @@ def test_remapping_namespace_and_node_name(ros_master, tmp_path):
     finally:
         rc, out, err = _ros.stop_node(node, signal.SIGTERM)
     assert rc == 0, err
-    assert len(res["latency"][0]) == 3 and len(res["feature"][0]) == 1  # frames 2 published and sent
+    assert len(res["latency"][0]) == 5 and len(res["feature"][0]) == 1  # frames 2 and 4 published, 4 sent
     assert json.loads(summary.read_text())["cameras"][0]["outputs"] == "/uav1/front/feature"

@@ -377,6 +377,11 @@ def _cmd_ros(args: argparse.Namespace) -> int:
                      max_frames=args.max_frames)
 
     def ready(node) -> None:
+        seen = []
+        for cfg in node.cfgs:  # the settings of each distinct config, as track prints them
+            if not any(cfg is c for c in seen):
+                seen.append(cfg)
+                print(cfg.settings_line(), flush=True)
         names = ", ".join(f"{t} -> {node.rospy.names.resolve_name(p + 'feature')}"
                           for t, p in zip(node.topics, node.prefixes))
         import rosgraph
