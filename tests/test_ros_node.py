@@ -87,8 +87,11 @@ def test_missing_rospy_is_one_line_naming_the_packages(monkeypatch, capsys):
 def test_no_master_names_ros_master_uri(monkeypatch, capsys):
     if (why := _ros.ros_missing()) is not None:
         ros_skip(why)
+    import sys
+
     from torch_frontend.cli import main
 
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the node appends the system's ROS packages: undone
     uri = f"http://127.0.0.1:{_ros.free_port()}"
     monkeypatch.setenv("ROS_MASTER_URI", uri)
     assert main(["ros", str(EUROC)]) == 1

@@ -114,7 +114,7 @@ def check_master(timeout: float = 3.0) -> str:
 @dataclasses.dataclass
 class RosCamera:
     """One camera of the node: its config (path or ``TrackerConfig``) and image topic (None: the
-    config's ``image_topic``)."""
+    config's ``image_topic``; a VINS-Fusion config's ``image0_topic``)."""
 
     config: Any
     topic: Optional[str] = None
@@ -434,10 +434,10 @@ def run_ros_node(cameras: Sequence[RosCamera], options: Optional[RosOptions] = N
             cfgs.append(loaded[key])
     topics = []
     for b, (c, cfg) in enumerate(zip(cameras, cfgs)):
-        t = c.topic or cfg.image_topic
+        t = c.topic or cfg.image_topic or cfg.image0_topic  # a VINS-Fusion config: its left camera
         if not t:
             raise OptionError("cameras", f"cameras: camera {b} ({cfg.path}) has no image topic: its config has no "
-                                         f"image_topic; give CONFIG@TOPIC")
+                                         f"image_topic (nor image0_topic); give CONFIG@TOPIC")
         topics.append(str(t))
     output_prefixes(topics, opt.node_name)  # a clash is an error before anything starts
     dev = resolve_device(opt.device or "cpu")
