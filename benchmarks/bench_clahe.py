@@ -70,9 +70,9 @@ def main(argv=None):
         ref = np.stack([clahe.apply(i) for i in imgs])
         same = bool(np.array_equal(out_f.cpu().numpy(), ref) and np.array_equal(out_t.cpu().numpy(), ref))
         fns = {
-            "fused": lambda: _clahe_impl(x, CLIP, *GRID, backend="fused"),
-            "tensor": lambda: _clahe_impl(x, CLIP, *GRID, backend="tensor"),
-            "cv2": lambda: [clahe.apply(i) for i in imgs],
+            "fused": lambda x=x: _clahe_impl(x, CLIP, *GRID, backend="fused"),
+            "tensor": lambda x=x: _clahe_impl(x, CLIP, *GRID, backend="tensor"),
+            "cv2": lambda imgs=imgs: [clahe.apply(i) for i in imgs],
         }
         t = _time_round_robin(fns, args.repeat, device)
         row = {"B": B, "bit_identical": same}
@@ -84,7 +84,7 @@ def main(argv=None):
         row["tensor_over_cv2"] = round(t["tensor"][0] / t["cv2"][0], 3)
         row["fused_over_tensor"] = round(t["fused"][0] / t["tensor"][0], 3)
         rows.append(row)
-    print(f"| B | fused ms/frame | tensor ms/frame | cv2 ms/frame | fused/cv2 | tensor/cv2 | fused/tensor | bits |")
+    print("| B | fused ms/frame | tensor ms/frame | cv2 ms/frame | fused/cv2 | tensor/cv2 | fused/tensor | bits |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['B']} | {r['fused_ms_per_frame']:.3f} | {r['tensor_ms_per_frame']:.3f} | "
