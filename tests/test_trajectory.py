@@ -197,7 +197,7 @@ def test_missing_file_and_wrong_format(tmp_path):
     with pytest.raises(DataError, match=r"v\.csv:1: expected 8 space-separated"):
         read_trajectory(p, "tum")
     with pytest.raises(ValueError, match="format"):
-        read_trajectory(p, "kitti")
+        read_trajectory(p, "g2o")
 
 
 # ---------------------------------------------------------------------------------------------
