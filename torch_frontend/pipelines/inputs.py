@@ -175,7 +175,8 @@ def resolve_configs(config: Any, sources: Sequence[Source] = (), camera: str = "
                               "provides sensor.yaml")
         else:
             cfg = _own_config(sources[i], camera, i, cache)
-        if sources and isinstance(sources[i], tuple) and sources[i][0] == "kitti" and c is not None:
+        if (sources and isinstance(sources[i], tuple) and sources[i][0] == "kitti" and c is not None
+                and not cfg.origin.startswith("KITTI")):  # (a KITTI input's config already: as it is)
             cfg = _kitti_with(sources[i], cfg, camera, cache)
         if cfg.camera is None:
             raise ConfigError("has no camera (an estimator-only config?); the tracker needs one", cfg.path)
