@@ -186,3 +186,10 @@ def test_cli_names_flags(tmp_path, capsys):
     rc = main(["track", str(REPO / "configs" / "euroc.yaml"), "--images", str(d), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 1 and "give a frame rate (--fps)" in err, err
+    make_odometry(tmp_path / "sequences" / "03", n=2)
+    rc = main(["track", "--kitti", str(tmp_path / "sequences" / "03"), "--camera", "left", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "error: --camera: expected one of cam0, cam1, cam2, cam3" in err, err
+    rc = main(["track", "--kitti", str(tmp_path / "sequences"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1 and "not a KITTI sequence" in err and "give one of them" in err and "sequences/03" in err, err

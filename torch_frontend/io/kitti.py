@@ -59,7 +59,7 @@ class KittiLayout:
 
 def _camera_index(camera: str) -> int:
     if camera not in CAMERAS:
-        raise DataError(f"camera: expected one of {', '.join(CAMERAS)} for a KITTI sequence "
+        raise DataError(f"`camera`: expected one of {', '.join(CAMERAS)} for a KITTI sequence "
                         f"(image_0 .. image_3), got {camera!r}")
     return CAMERAS.index(camera)
 
@@ -89,8 +89,11 @@ def find_kitti(root: PathLike, camera: str = "cam0") -> KittiLayout:
             raise DataError(f"{cam}: KITTI raw camera folder without timestamps.txt")
         return KittiLayout(r, "raw", i, cam / "data" if (cam / "data").is_dir() else cam, calib,
                            cam / "timestamps.txt")
+    inside = sorted(d.name for d in r.iterdir() if d.is_dir() and ((d / "calib.txt").is_file()
+                                                                     or (d / f"image_0{i}").is_dir()))
+    hint = f"; it holds sequences: give one of them, e.g. {r / inside[0]}" if inside else ""
     raise DataError(f"{r}: not a KITTI sequence (no calib.txt with image_{i}/ (odometry: sequences/NN) nor "
-                    f"image_0{i}/ (raw: a *_sync drive folder))")
+                    f"image_0{i}/ (raw: a *_sync drive folder)){hint}")
 
 
 def read_calib(path: PathLike) -> Dict[str, np.ndarray]:
