@@ -193,3 +193,15 @@ def test_cli_names_flags(tmp_path, capsys):
     rc = main(["track", "--kitti", str(tmp_path / "sequences"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 1 and "not a KITTI sequence" in err and "give one of them" in err and "sequences/03" in err, err
+
+
+def test_cli_loop_warns_about_the_up_axis(seq, tmp_path, capsys):
+    """KITTI poses (driving along z) taken as z-up for the 4-DoF graph: one warning line."""
+    poses = tmp_path / "00.txt"
+    write_kitti_poses(poses, 6)
+    rc = main(["loop", "--kitti", str(seq), "--poses", str(poses), "--train-vocabulary", "--train-L", "2",
+               "--pose-graph", "4dof", "--up", "+z", "--out", str(tmp_path / "loop"), "--no-progress"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "pose graph    4dof, up +z\n" in cap.out
+    assert "torch-frontend: warning: " in cap.err and "runs mostly along +z" in cap.err, cap.err

@@ -139,7 +139,8 @@ def _interrupt_signals():
 
 @contextlib.contextmanager
 def _config_warnings():
-    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
+    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") and the poses'
+    ``WorldFrameWarning`` (loop closure's up axis) as one stderr line
     ``torch-frontend: warning: ...`` and an input's ``DataWarning`` (colour frames made grey) as
     ``torch-frontend: note: ...`` inside the block; other warnings as Python prints them."""
     import warnings
@@ -151,7 +152,8 @@ def _config_warnings():
 
     def show(message, category, filename, lineno, file=None, line=None):
         if issubclass(category, (ConfigWarning, WorldFrameWarning)):
-            if rank == 0:  # under torchrun every rank reads the config: rank 0 says it once
+            # under torchrun every rank reads the config: rank 0 says it once; a rank's own poses: that rank
+            if rank == 0 or issubclass(category, WorldFrameWarning):
                 print(f"torch-frontend: warning: {message}", file=sys.stderr)
         elif issubclass(category, DataWarning):
             print(f"torch-frontend: note: {message}", file=sys.stderr)
