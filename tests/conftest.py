@@ -67,6 +67,30 @@ def single_thread():
     torch.set_num_threads(n)
 
 
+def ros_skip(why: str):
+    """Skip a test that needs ROS 1, saying what is missing; a failure instead under
+    ``TORCH_FRONTEND_REQUIRE_ROS=1`` (``make test-all``, CI: ``.ci/run`` installs ROS 1)."""
+    import os
+
+    if os.environ.get("TORCH_FRONTEND_REQUIRE_ROS") == "1":
+        pytest.fail(f"ROS 1 required (TORCH_FRONTEND_REQUIRE_ROS=1) but missing: {why}")
+    pytest.skip(f"ROS 1 missing: {why}")
+
+
+@pytest.fixture(scope="module")
+def ros_master():
+    """A private ``roscore`` on a free port for a module (``tests._ros.roscore``): yields the
+    environment for the node and the driver (``ROS_MASTER_URI``, ``ROS_HOSTNAME=127.0.0.1``, a
+    temporary ``ROS_HOME``), or skips saying what is missing (:func:`ros_skip`)."""
+    from . import _ros
+
+    why = _ros.ros_missing()
+    if why is not None:
+        ros_skip(why)
+    with _ros.roscore() as env:
+        yield env
+
+
 @pytest.fixture(params=DEVICES)
 def device(request):
     return torch.device(request.param)

@@ -14,6 +14,8 @@
   ``ArraySequence``), ``rig`` (``read_rig``: a rig file's inputs and their configs), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
   ``pad_ragged``, ``resolve_device``), ``prefetch`` (:class:`FrameStream`: ``MultiStream``'s
   batches with the frames decoded in DataLoader workers, ``InputOptions.workers``).
+* ``ros_node``: :func:`run_ros_node` (:class:`RosOptions`, :class:`RosCamera`): the live ROS 1
+  node (``torch-frontend ros``), VINS-Mono's ``feature_tracker_node`` for one or more cameras.
 * sharded over the ranks of a ``torch.distributed`` job (``torchrun``): ``sharded``
   (:func:`run_track_sharded`, :func:`run_loop_sharded`, :func:`run_vocabulary_train_sharded`;
   ``track.track_streams`` writes one output set per stream).
@@ -54,6 +56,9 @@ _EXPORTS = {
     "extrinsic_from_config": "loop",
     "run_loop": "loop",
     "run_make_config": "make_config",
+    "RosCamera": "ros_node",
+    "RosOptions": "ros_node",
+    "run_ros_node": "ros_node",
     "VocabularyOptions": "vocabulary",
     "load_vocabulary": "vocabulary",
     "run_vocabulary_train": "vocabulary",
