@@ -583,3 +583,8 @@ def _compile_all(target, out: Dict[str, str]) -> None:
                         constexprs={"BLOCK": _triton_pyramid._BLOCK})
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_pyramid._NUM_WARPS}).asm["ptx"]
+    from . import _triton_mask
+
+    for name, (kern, sig, consts, warps) in _triton_mask.KERNELS.items():
+        src = ASTSource(fn=kern, signature=sig, constexprs=consts)
+        out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS, "num_warps": warps}).asm["ptx"]
