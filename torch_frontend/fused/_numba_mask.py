@@ -62,10 +62,9 @@ def _disc(out, cx, cy, spans):
             continue
         hw = spans[abs(dy)]
         x0 = max(cx - hw, 0)
-        x1 = min(cx + hw + 1, W)
-        row = out[y]
-        for x in range(x0, x1):
-            row[x] = 0
+        seg = out[y, x0:min(cx + hw + 1, W)]  # a slice: indices from 0, no wrap-around test per pixel
+        for x in range(seg.shape[0]):
+            seg[x] = 0
 
 
 @njit(cache=True, nogil=True)
@@ -75,12 +74,11 @@ def set_mask_streams(pts, pri, valid, base, spans, keep, out, s0, s1):
     H, W = out.shape[1], out.shape[2]
     order = np.empty(N, dtype=np.int64)
     for b in range(s0, s1):
-        src = base[b if base.shape[0] > 1 else 0]
+        src = base[b if base.shape[0] > 1 else 0].reshape(H * W)  # C-contiguous: views
         dst = out[b]
-        for y in range(H):
-            d, s = dst[y], src[y]
-            for x in range(W):
-                d[x] = s[x]
+        flat = dst.reshape(H * W)
+        for e in range(H * W):
+            flat[e] = src[e]
         for i in range(N):
             keep[b, i] = False
         n = _stable_order(pri[b], valid[b], order)
