@@ -235,3 +235,24 @@ def test_tracker_runs_the_fused_set_mask(monkeypatch):
         for t, img in frames:
             tr.track(torch.from_numpy(np.stack([img, img[::-1].copy()]))[:, None], [t, t])
     assert ("fused", 1) in calls and ("tensor", 2) in calls, calls
+
+
+def test_op_passes_opcheck_and_compiles_as_one_node():
+    """``torch.library.opcheck`` (schema, fake, autograd registration, AOT dispatch) and
+    ``torch.compile(fullgraph=True)`` of the door's fused path on the CPU (no graph break)."""
+    from torch_frontend.fused import selfcheck
+
+    c = selfcheck.case()
+    pts = torch.cat((c["pts"], c["init"]), 1)
+    cnt = (torch.arange(48).view(2, 24) * 7) % 4
+    valid = torch.cat((c["valid"], c["valid"]), 1)
+    base = torch.full((1, 72, 104), 255, dtype=torch.uint8)
+    res = torch.library.opcheck(set_mask_op, (pts, cnt, valid, base, 17.0))
+    assert all(v == "SUCCESS" for v in res.values()), res
+
+    def fn(p, q, v, m):
+        return _distance_mask_impl(p, q, v, 17.0, m, capturable=True, backend="fused")[:2]
+
+    got = torch.compile(fn, backend="eager", fullgraph=True)(pts, cnt, valid, base)
+    want = fn(pts, cnt, valid, base)
+    assert all(torch.equal(x, y) for x, y in zip(got, want))

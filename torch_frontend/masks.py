@@ -28,6 +28,7 @@ from ._checks import check_points, check_shape, default_valid
 from .corners.selection import _resolve_rounds
 from .corners.selection_capturable import _iota, _lower, _pair_conflicts, _resolve_dense
 from .errors import ConfigError
+from .fused.mask_op import set_mask_op
 
 __all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
 
@@ -175,8 +176,6 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
         elsewhere the result equals the default path's), None on the default path (exact).
     """
     if backend == "fused":
-        from .fused.mask_op import set_mask_op
-
         keep, out = set_mask_op(pts.detach(), priority, valid, mask, float(radius))
         overflow = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device) if capturable else None
         return DistanceMaskResult(keep, out, overflow)
