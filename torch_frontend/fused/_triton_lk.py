@@ -548,8 +548,8 @@ def ptx_sm90() -> Dict[str, str]:
     """The PTX of every Triton kernel of the fused LK and pyramid, compiled for sm_90 without a GPU.
 
     Compiled with the launchers' options (``enable_fp_fusion=False``, their ``num_warps``) and
-    constexprs (a 21 x 21 window), one entry per LK variant (see ``_LK_VARIANTS``) and per pyramid
-    kernel. Must run in a process without ``TRITON_INTERPRET`` (it replaces ``@triton.jit``).
+    constexprs (a 21 x 21 window), one entry per LK variant (see ``_LK_VARIANTS``), per pyramid
+    kernel and per setMask kernel (``_triton_mask.KERNELS``). Must run in a process without ``TRITON_INTERPRET`` (it replaces ``@triton.jit``).
     """
     from triton.backends.compiler import GPUTarget
 
