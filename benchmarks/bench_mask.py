@@ -68,14 +68,14 @@ def main() -> None:
     print("| B | path | fused median (min) ms | tensor median (min) ms | fused per stream ms | fused / tensor |")
     print("|---|---|---|---|---|---|")
     base1 = torch.full((1, H, W), 255, dtype=torch.uint8)
+    r = float(full[3])
     for B in a.B:
         pts, cnt, valid = (full[i].expand(B, *full[i].shape[1:]).contiguous() for i in range(3))
-        r = float(full[3])
         for cap in (False, True):
-            def fused():
+            def fused(pts=pts, cnt=cnt, valid=valid, cap=cap):
                 return _distance_mask_impl(pts, cnt, valid, r, base1, capturable=cap, backend="fused")
 
-            def tensor():
+            def tensor(pts=pts, cnt=cnt, valid=valid, cap=cap, B=B):
                 m = torch.full((B, H, W), 255, dtype=torch.uint8)
                 return _distance_mask_impl(pts, cnt, valid, r, m, capturable=cap)
 
