@@ -256,3 +256,22 @@ def test_op_passes_opcheck_and_compiles_as_one_node():
     got = torch.compile(fn, backend="eager", fullgraph=True)(pts, cnt, valid, base)
     want = fn(pts, cnt, valid, base)
     assert all(torch.equal(x, y) for x, y in zip(got, want))
+
+
+def test_threads_give_the_same_bits():
+    """Stream groups on the thread pool (2 and 3 threads): each stream's bits are its own."""
+    rng = np.random.default_rng(3)
+    B, N, H, W = 5, 60, 48, 64
+    pts = torch.from_numpy(rng.uniform(-1, [W, H], (B, N, 2)).astype(np.float32))
+    cnt = torch.from_numpy(rng.integers(1, 4, (B, N)))
+    valid = torch.from_numpy(rng.random((B, N)) > 0.1)
+    base = torch.full((1, H, W), 255, dtype=torch.uint8)
+    want = set_mask_op(pts, cnt, valid, base, 6.0)
+    n = torch.get_num_threads()
+    try:
+        for t in (2, 3):
+            torch.set_num_threads(t)
+            got = set_mask_op(pts, cnt, valid, base, 6.0)
+            assert all(torch.equal(a, b) for a, b in zip(got, want)), t
+    finally:
+        torch.set_num_threads(n)
