@@ -47,7 +47,7 @@ def _corners():
                                                                 capturable=cap)
 
 
-def _masks():
+def _masks(backend="tensor"):
     from torch_frontend.masks import _distance_mask_impl
 
     g = torch.Generator().manual_seed(1)
@@ -55,7 +55,7 @@ def _masks():
     pri = torch.randint(1, 4, (B, 8), generator=g)
     valid = torch.ones(B, 8, dtype=torch.bool)
     return _distance_mask_impl, lambda cap: _distance_mask_impl(
-        pts, pri, valid, 3.0, torch.full((B, 20, 20), 255, dtype=torch.uint8), capturable=cap)
+        pts, pri, valid, 3.0, torch.full((B, 20, 20), 255, dtype=torch.uint8), capturable=cap, backend=backend)
 
 
 def _lk():
@@ -95,6 +95,12 @@ KERNELS = {
 }
 
 
+# the same contract for a kernel's other backends (the fused ops behind an ``_impl``)
+BACKEND_VARIANTS = {
+    "masks[fused]": ("torch_frontend.masks", lambda: _masks("fused")),
+}
+
+
 def _static_names(module: str):
     """Callables named ``*_static`` in a kernel module and its submodules (the contract's one name
     for the concept is ``*_capturable``)."""
@@ -111,9 +117,9 @@ def test_every_kernel_is_listed():
         sorted({k.split(":")[0] for k in KERNELS})  # "module:variant": another backend of the module's _impl
 
 
-@pytest.mark.parametrize("kernel", list(KERNELS))
+@pytest.mark.parametrize("kernel", list(KERNELS) + list(BACKEND_VARIANTS))
 def test_impl_follows_the_kernel_contract(kernel):
-    module, build = KERNELS[kernel]
+    module, build = {**KERNELS, **BACKEND_VARIANTS}[kernel]
     importlib.import_module(module)
     old = _static_names(module)
     assert not old, f"{module}: capturable helpers must be named *_capturable, not {old}"

@@ -50,7 +50,7 @@ def _probe(kind: str) -> Optional[str]:
         try:
             import numba  # noqa: F401
 
-            from . import _numba_lk, _numba_pyramid  # noqa: F401
+            from . import _numba_lk, _numba_mask, _numba_pyramid  # noqa: F401
         except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor LK
             return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
         return None
@@ -60,7 +60,7 @@ def _probe(kind: str) -> Optional[str]:
         try:
             import triton  # noqa: F401
 
-            from . import _triton_lk, _triton_pyramid  # noqa: F401
+            from . import _triton_lk, _triton_mask, _triton_pyramid  # noqa: F401
         except Exception as e:  # noqa: BLE001
             return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
         from .selfcheck import cuda_selfcheck
