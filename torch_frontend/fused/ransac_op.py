@@ -60,6 +60,13 @@ def _check(F, fok, x12, eff, n, table, state) -> None:
         raise ValueError("torch_frontend::ransac_score: give all of live, best, niters, done or none")
 
 
+def _as(t: Tensor, dtype: torch.dtype) -> Tensor:
+    """``t`` as a contiguous ``dtype`` tensor (itself when it is one: no op)."""
+    if t.dtype != dtype:
+        t = t.to(dtype)
+    return t if t.is_contiguous() else t.contiguous()
+
+
 @torch.library.impl("torch_frontend::ransac_score", "cpu")
 def _ransac_score_cpu(F: Tensor, fok: Tensor, x12: Tensor, eff: Tensor, n: Tensor, table: Tensor,
                       live: Optional[Tensor], best: Optional[Tensor], niters: Optional[Tensor],
@@ -72,10 +79,10 @@ def _ransac_score_cpu(F: Tensor, fok: Tensor, x12: Tensor, eff: Tensor, n: Tenso
     dev = F.device
     outs = [torch.empty((B,), dtype=torch.int64, device=dev) for _ in range(4)]
     mask = torch.empty((B, N), dtype=torch.bool, device=dev)
-    a = [_np(t.contiguous()) for t in (F.to(torch.float64), fok.to(torch.bool), x12.to(torch.float64),
-                                       eff.to(torch.bool), n.to(torch.int64), table.to(torch.int64))]
+    f64, i64, b8 = torch.float64, torch.int64, torch.bool
+    a = [_np(_as(t, d)) for t, d in ((F, f64), (fok, b8), (x12, f64), (eff, b8), (n, i64), (table, i64))]
     has = live is not None
-    st = [_np(t.contiguous().to(torch.int64)) for t in (live, best, niters, done)] if has else [a[4]] * 4
+    st = [_np(_as(t, i64)) for t in (live, best, niters, done)] if has else [a[4]] * 4
     o = [_np_out(t) for t in outs] + [_np_out(mask)]
 
     def run(s0, s1):
