@@ -44,6 +44,19 @@ def _inputs(B: int, rate: float, seed: int = 0):
     return torch.from_numpy(a), torch.from_numpy(c), valid, ns
 
 
+def _calls(p1, p2, valid, ns):
+    """The timed calls on one batch: name -> function."""
+    a, c = p1.numpy(), p2.numpy()
+    return {
+        "fused": lambda: find_fundamental(p1, p2, valid, backend="fused"),
+        "tensor": lambda: find_fundamental(p1, p2, valid, backend="tensor"),
+        "fused_capturable": lambda: find_fundamental(p1, p2, valid, backend="fused", capturable=True),
+        "tensor_capturable": lambda: find_fundamental(p1, p2, valid, backend="tensor", capturable=True),
+        "cv2": lambda: [cv2.findFundamentalMat(a[b, :n], c[b, :n], cv2.FM_RANSAC, 1.0, 0.99)
+                        for b, n in enumerate(ns)],
+    }
+
+
 def main() -> None:
     ap = kernel_bench_parser(__doc__, "ransac_fused.json", 15)
     ap.add_argument("--rate", type=float, default=0.1)
@@ -53,15 +66,7 @@ def main() -> None:
     rows = []
     for B in args.B:
         p1, p2, valid, ns = _inputs(B, args.rate)
-        a, c = p1.numpy(), p2.numpy()
-        fns = {
-            "fused": lambda: find_fundamental(p1, p2, valid, backend="fused"),
-            "tensor": lambda: find_fundamental(p1, p2, valid, backend="tensor"),
-            "fused_capturable": lambda: find_fundamental(p1, p2, valid, backend="fused", capturable=True),
-            "tensor_capturable": lambda: find_fundamental(p1, p2, valid, backend="tensor", capturable=True),
-            "cv2": lambda: [cv2.findFundamentalMat(a[b, :n], c[b, :n], cv2.FM_RANSAC, 1.0, 0.99)
-                            for b, n in enumerate(ns)],
-        }
+        fns = _calls(p1, p2, valid, ns)
         outs = {k: f() for k, f in fns.items()}  # warm-up (tables, kernels) and the masks
         cvm = [m.ravel().astype(bool) for _, m in outs["cv2"]]
         same = {k: all(np.array_equal(outs[k].inliers[b, :n].numpy(), cvm[b]) for b, n in enumerate(ns))
