@@ -160,6 +160,10 @@ def resolve_ransac_backend(requested: Optional[str], device) -> str:
         why = _RANSAC_STATUS.get(dev.type)
     if not known:
         why = _probe_ransac(dev.type)
+        capturing = dev.type == "cuda" and torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
+        if capturing and why is not None:  # a self-check cannot run inside a capture: ask again later
+            raise ConfigError("the fused RANSAC scoring is resolved on its first call, which must run outside a "
+                              f"CUDA graph capture ({why}); make a first call (or build the tracker) before capturing")
         with _LOCK:
             why = _RANSAC_STATUS.setdefault(dev.type, why)
     if why is None:
