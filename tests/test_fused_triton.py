@@ -463,6 +463,14 @@ def _scenario_ransac():
             got = ransac_score_cuda(*args, *st, thr2)
             for r, g in zip(ref, got):
                 assert torch.equal(r, g), (thr2, st[0] is None, r, g)
+    # slots in several lane blocks (N = 40 in blocks of 16: the count and mask loops over chunks)
+    import torch_frontend.fused._triton_ransac as tr
+
+    tr._MAX_BLOCK = 16
+    args = selfcheck_case()
+    for r, g in zip(ransac_score_op(*args, None, None, None, None, 1.0),
+                    ransac_score_cuda(*args, None, None, None, None, 1.0)):
+        assert torch.equal(r, g), ("chunks", r, g)
     print("PASS ransac")
 
 
