@@ -89,15 +89,16 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
     nf = n.to(torch.float64)
     num = _lmeds_iters(confidence, max_iters) if lmeds else max(int(max_iters), 1)
     streams = [_subset_stream(st, nb) for st, nb in zip(states, n_host)]
-    h1 = _homogeneous(x12[..., :2], valid)
-    h2 = _homogeneous(x12[..., 2:], valid)
+    fused = fused and not lmeds
+    # the tensor scoring's homogeneous points (the fused op reads x12 and valid itself)
+    h1 = None if fused else _homogeneous(x12[..., :2], valid)
+    h2 = None if fused else _homogeneous(x12[..., 2:], valid)
     best_F = torch.zeros(G, 3, 3, dtype=torch.float64, device=dev)
     best_inl = torch.zeros(G, N, dtype=torch.bool, device=dev)  # RANSAC: the best model's mask
     best_score = torch.full((G,), float("inf") if lmeds else -1.0, dtype=torch.float64, device=dev)
     done = torch.zeros(G, dtype=torch.int64, device=dev)
     niters = torch.full((G,), num, dtype=torch.int64, device=dev)
     done_h, niters_h = [0] * G, [num] * G
-    fused = fused and not lmeds
     if fused:
         from ..fused.ransac_op import ransac_score_op
 
@@ -124,13 +125,13 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
             idx_np[j, : hi - lo] = streams[i].upto(hi)[lo:hi]
             ok_np[j, : hi - lo] = True
         idx = torch.from_numpy(idx_np).to(dev)
-        g_ok = torch.from_numpy(ok_np).to(dev)
+        g_ok = None if fused else torch.from_numpy(ok_np).to(dev)
         if A == G:  # common case (B = 1, or all problems still running): no gathers
             a12, b1, b2, d0, n0, nfa, prev = x12, h1, h2, done, niters, nf, best_score
             av, an = valid, n
         else:
             act = torch.tensor(act_l, dtype=torch.int64, device=dev)
-            a12, b1, b2 = x12[act], h1[act], h2[act]
+            a12, b1, b2 = x12[act], (None if fused else h1[act]), (None if fused else h2[act])
             d0, n0, nfa, prev = done[act], niters[act], nf[act], best_score[act]
             av, an = valid[act], n[act]
         flat = idx.view(A, Hr * _MODEL_POINTS, 1).expand(-1, -1, 4)
