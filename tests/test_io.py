@@ -174,7 +174,7 @@ def test_image_folder_timestamps(tmp_path):
     for i, f in enumerate(src):
         shutil.copy(f, num / f"{i:06d}.png")
     (num / "notes.txt").write_text("ignored")
-    with pytest.raises(DataError, match=r"give a frame rate \(fps\)"):
+    with pytest.raises(DataError, match=r"give a frame rate \(`fps`\)"):
         ImageFolderSequence(num)
     seq = ImageFolderSequence(num, fps=20)
     frames = list(seq)

@@ -32,6 +32,13 @@ def _clahe():
     return _clahe_impl, lambda cap: _clahe_impl(src, 3.0, 2, 2, capturable=cap)
 
 
+def _clahe_fused():
+    from torch_frontend.equalize import _clahe_impl
+
+    src = _images()[:, 0].contiguous()
+    return _clahe_impl, lambda cap: _clahe_impl(src, 3.0, 2, 2, capturable=cap, backend="fused")
+
+
 def _corners():
     from torch_frontend.corners import _good_features_impl
 
@@ -80,6 +87,7 @@ def _ransac():
 # kernel module -> the builder of its ``_impl`` and a call on tiny inputs (a new kernel adds a line)
 KERNELS = {
     "equalize": ("torch_frontend.equalize", _clahe),
+    "equalize:fused": ("torch_frontend.equalize", _clahe_fused),  # the fused op behind the same _impl
     "corners": ("torch_frontend.corners", _corners),
     "masks": ("torch_frontend.masks", _masks),
     "lk": ("torch_frontend.lk", _lk),
@@ -99,7 +107,8 @@ def test_every_kernel_is_listed():
     kernels = dict(LAYERS)["kernels"]
     # _tuning: strategies; pyramid: one form on both paths; fused: the custom ops behind the pyramid and
     # the LK (their doors are those kernels', tests/test_fused.py)
-    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == sorted(KERNELS)
+    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == \
+        sorted({k.split(":")[0] for k in KERNELS})  # "module:variant": another backend of the module's _impl
 
 
 @pytest.mark.parametrize("kernel", list(KERNELS))

@@ -32,6 +32,13 @@ class DataWarning(UserWarning):
     (once per sequence). The CLI prints it as one ``torch-frontend: note: ...`` line."""
 
 
+class WorldFrameWarning(UserWarning):
+    """Loop closure's world frame looks wrong: poses whose motion is far from horizontal in the
+    assumed up axis (the 4-DoF pose graph's yaw axis, the plots' viewing axis), naming the likely
+    up axis (``torch_frontend.loop.world``). The CLI prints it as one ``torch-frontend: warning:``
+    line."""
+
+
 class DataError(ValueError):
     """Input data is missing, unreadable or inconsistent (a user error, not a bug).
 

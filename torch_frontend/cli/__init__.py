@@ -4,14 +4,14 @@ This module does argparse and printing only: each command builds the options of 
 its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
 exit codes.
 
-``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
+``torch-frontend track [CONFIG] (--euroc DIR | --kitti SEQ | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
 --out DIR`` runs the VINS front end on one or more sequences at once (B streams in one batched
 tracker, each with its own config: :func:`_paired_inputs`) and writes
 ``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
 (``pipelines.track.run_track``; see ``torch_frontend.outputs``). ``torch-frontend demo`` does the
 same on the sample EuRoC frames shipped with the package.
 
-``torch-frontend loop [CONFIG] (--euroc DIR | --images DIR | --bag FILE)... --poses FILE... --out DIR
+``torch-frontend loop [CONFIG] (--euroc DIR | --kitti SEQ | --images DIR | --bag FILE)... --poses FILE... --out DIR
 (--vocabulary FILE | --train-vocabulary)`` runs loop closure (VINS's pose graph) on images plus
 their VIO poses and writes the loop-corrected trajectory, the loops, the pose graph, a summary and
 plots (``pipelines.loop.run_loop``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
@@ -139,19 +139,21 @@ def _interrupt_signals():
 
 @contextlib.contextmanager
 def _config_warnings():
-    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
+    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") and the poses'
+    ``WorldFrameWarning`` (loop closure's up axis) as one stderr line
     ``torch-frontend: warning: ...`` and an input's ``DataWarning`` (colour frames made grey) as
     ``torch-frontend: note: ...`` inside the block; other warnings as Python prints them."""
     import warnings
 
-    from ..errors import ConfigWarning, DataWarning
+    from ..errors import ConfigWarning, DataWarning, WorldFrameWarning
 
     shown = warnings.showwarning
     rank = _rank()
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, ConfigWarning):
-            if rank == 0:  # under torchrun every rank reads the config: rank 0 says it once
+        if issubclass(category, (ConfigWarning, WorldFrameWarning)):
+            # under torchrun every rank reads the config: rank 0 says it once; a rank's own poses: that rank
+            if rank == 0 or issubclass(category, WorldFrameWarning):
                 print(f"torch-frontend: warning: {message}", file=sys.stderr)
         elif issubclass(category, DataWarning):
             print(f"torch-frontend: note: {message}", file=sys.stderr)
@@ -195,8 +197,9 @@ def main(argv: List[str] | None = None) -> int:
     except RankFailure as exc:
         error(exc, f"{exc}; no merged summary written")
         return exc.exit_code
-    except DataError as exc:
-        error(exc, str(exc))
+    except DataError as exc:  # a reader's option named in backticks ("give a frame rate (`fps`)") -> its flag
+        flags = getattr(args, "flags", {})
+        error(exc, re.sub(r"`([a-z_]+)`", lambda m: flags.get(m.group(1), m.group(0)), str(exc)))
         return EXIT_DATA
     except JobAborted as exc:
         if not exc.quiet:

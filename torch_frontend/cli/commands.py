@@ -85,7 +85,7 @@ def _progress(args: argparse.Namespace):
 
 
 def _flag(source) -> str:
-    """A source as the command line names it (``--euroc DIR``)."""
+    """A source as the command line names it (``--euroc DIR``, ``--kitti SEQ``)."""
     return f"--{source[0]} {source[1]}"
 
 
@@ -116,7 +116,7 @@ def _paired_inputs(args: argparse.Namespace) -> Tuple[List[Tuple], Any]:
                 leading = Path(value)
             elif last != "input":
                 raise _UsageError(f"--config {value} after --rig {last}: a rig file's inputs name their own "
-                                  f"config (its 'config:' key); a --config applies to the --euroc/--bag/--images "
+                                  f"config (its 'config:' key); a --config applies to the --euroc/--kitti/--bag/--images "
                                   f"input just before it")
             elif own[-1] is not None:
                 raise _UsageError(f"--config {value}: input {len(sources)} ({_flag(sources[-1])}) already has "
@@ -156,10 +156,10 @@ def _check_inputs(config, sources: Sequence[Tuple], kinds: str) -> None:
         raise _UsageError(f"no input: give at least one {kinds}")
     per = list(config) if isinstance(config, list) else [config] * len(sources)
     for b, (src, c) in enumerate(zip(sources, per)):
-        if c is None and src[0] != "euroc":
+        if c is None and src[0] not in ("euroc", "kitti"):
             raise _UsageError(f"no CONFIG given for input {b + 1} ({_flag(src)}): a VINS config file is needed "
-                              f"unless an --euroc folder provides sensor.yaml (give CONFIG, or --config FILE "
-                              f"after this input)")
+                              f"unless an --euroc folder provides sensor.yaml or a --kitti sequence calib.txt "
+                              f"(give CONFIG, or --config FILE after this input)")
 
 
 def _sharded() -> bool:
@@ -203,7 +203,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from ..pipelines.track import TrackOptions, run_track
 
     sources, config = _paired_inputs(args)
-    _check_inputs(config, sources, "--euroc DIR, --bag PATH, --images DIR or --rig FILE")
+    _check_inputs(config, sources, "--euroc DIR, --kitti SEQ, --bag PATH, --images DIR or --rig FILE")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
                        bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume,
@@ -220,23 +220,40 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _world_defaults(args: argparse.Namespace, sources: Sequence[Tuple]) -> Tuple[str, str, str]:
+    """``(pose graph mode, up axis, why)`` of ``loop``: ``--pose-graph`` / ``--up`` as given, else
+    6dof when an input is ``--kitti`` (no IMU, as VINS-Fusion with ``imu: 0``) and ``-y`` when
+    every input is (KITTI's camera-0 world: y down), else 4dof and ``+z``; ``why`` says which
+    default came from ``--kitti`` (empty when none did)."""
+    kitti = [s[0] == "kitti" for s in sources]
+    mode = args.pose_graph or ("6dof" if any(kitti) else "4dof")
+    up = args.up or ("-y" if kitti and all(kitti) else "+z")
+    why = [w for w, derived in (("--kitti: no IMU, 6dof", args.pose_graph is None and any(kitti)),
+                                ("--kitti: camera-0 world, y down", args.up is None and kitti and all(kitti)))
+           if derived]
+    return mode, up, "; ".join(why)
+
+
 def _cmd_loop(args: argparse.Namespace) -> int:
     from ..pipelines.loop import LoopOptions, run_loop
 
     sources, config = _paired_inputs(args)
-    _check_inputs(config, sources, "--euroc DIR, --images DIR, --bag FILE or --rig FILE")
+    _check_inputs(config, sources, "--euroc DIR, --kitti SEQ, --images DIR, --bag FILE or --rig FILE")
     if args.vocabulary is None and not args.train_vocabulary:
         raise _UsageError("no vocabulary: give --vocabulary FILE (VINS's brief_k10L6.bin, or a .npz from "
                           "'torch-frontend vocabulary train') or --train-vocabulary")
+    mode, up, why = _world_defaults(args, sources)
     opt = LoopOptions(
         **_input_options(args), vocabulary=args.vocabulary, train_vocabulary=args.train_vocabulary,
         vocabulary_k=args.train_k, vocabulary_L=args.train_L, load_graph=args.load_graph,
-        separate_graphs=args.separate_graphs, mode=args.pose_graph, tracker_mode=args.tracker_mode,
+        separate_graphs=args.separate_graphs, mode=mode, up=up, tracker_mode=args.tracker_mode,
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
         checkpoint_every=args.checkpoint_every, resume=args.resume,
     )
     config = _resolved_config(config, sources, opt)
+    if _rank() == 0:
+        print(f"pose graph    {mode}, up {up}" + (f" ({why})" if why else ""), flush=True)
     if _sharded():
         from ..pipelines.sharded import run_loop_sharded
 

@@ -7,6 +7,7 @@ import argparse
 import math
 from pathlib import Path
 
+from ..loop.world import UP_AXES
 from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocabulary
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
@@ -22,7 +23,7 @@ _LOOP_FLAGS = {
     "load_graph": "--load-graph", "separate_graphs": "--separate-graphs", "mode": "--pose-graph",
     "tracker_mode": "--tracker-mode", "keyframe_distance": "--keyframe-distance",
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
-    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
+    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume", "up": "--up",
 }
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
@@ -120,6 +121,11 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
                      help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
     src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
                      help="folder of images (timestamps from numeric names, or --fps)")
+    src.add_argument("--kitti", dest="sources", action=_SourceAction, const="kitti", metavar="SEQ",
+                     help="KITTI odometry sequence (sequences/NN: image_0/, calib.txt, times.txt) or raw drive "
+                          "(*_sync: image_00/, calib_cam_to_cam.txt); no config needed: the camera from P0 "
+                          "(--camera cam1..cam3: P1..P3), VINS-Mono's front-end defaults, which a --config "
+                          "after it replaces (its front-end keys; docs/datasets.md)")
     src.add_argument("--config", dest="sources", action=_SourceAction, const="config", metavar="FILE",
                      help="VINS config of the input just before it (--euroc A --config a.yaml --euroc B "
                           "--config b.yaml: each stream its own camera, size and settings); inputs without "
@@ -134,7 +140,7 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
     p.add_argument("--topic", default=None, metavar="T",
                    help="image topic of --bag inputs (default: the config's image_topic)")
     p.add_argument("--camera", default="cam0", metavar="CAM",
-                   help="camera folder of --euroc inputs (default: cam0)")
+                   help="camera folder of --euroc inputs, camera of --kitti inputs (default: cam0)")
     p.add_argument("--skip-bad-frames", action="store_true",
                    help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
     p.add_argument("--workers", type=_non_negative_int, default=0, metavar="N",
@@ -159,7 +165,7 @@ def _add_track(sub) -> None:
     track.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                        help="VINS config YAML (VINS-Mono or VINS-Fusion) of every input without its own "
                             "--config; optional with --euroc, whose own sensor.yaml then gives each "
-                            "folder's camera")
+                            "folder's camera, and with --kitti (calib.txt)")
     _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
     rb = track.add_argument_group("ROS bag output (docs/ros.md)")
@@ -231,12 +237,13 @@ def _add_loop(sub) -> None:
     )
     loop.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                       help="VINS config YAML (camera and camera-to-body extrinsic) of every input without its "
-                           "own --config; optional with --euroc, whose own sensor.yaml then gives both (a shared "
+                           "own --config; optional with --euroc, whose own sensor.yaml then gives both, and with "
+                           "--kitti (calib.txt; body = camera 0) (a shared "
                            "map needs one extrinsic: inputs with different ones need --separate-graphs)")
     lsrc = _add_input_options(loop, "inputs (repeatable, at least one; one --poses per input)")
     lsrc.add_argument("--poses", action="append", metavar="FILE",
-                      help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, or EuRoC "
-                           "ground truth (format detected)")
+                      help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, EuRoC "
+                           "ground truth or KITTI (poses/NN.txt: line k at the input's image k; format detected)")
     lsrc.add_argument("--ground-truth", action="append", default=None, metavar="FILE",
                       help="reference trajectory of the input (any of the same formats): ATE before/after")
     voc = loop.add_mutually_exclusive_group()
@@ -253,8 +260,13 @@ def _add_loop(sub) -> None:
                       help="start from a saved pose graph (VINS format, e.g. an earlier run's pose_graph/)")
     loop.add_argument("--separate-graphs", action="store_true",
                       help="one pose graph per input instead of one shared map (VINS's multi-sequence merge)")
-    loop.add_argument("--pose-graph", choices=("4dof", "6dof"), default="4dof",
-                      help="4dof: VIO with IMU (x, y, z, yaw), 6dof: without IMU (default: 4dof)")
+    loop.add_argument("--pose-graph", choices=("4dof", "6dof"), default=None,
+                      help="4dof: VIO with IMU (x, y, z, yaw about --up), 6dof: without IMU (default: 4dof; "
+                           "6dof when an input is --kitti, which has no IMU)")
+    loop.add_argument("--up", choices=UP_AXES, default=None,
+                      help="the poses' world axis that points up (against gravity): the 4dof graph's yaw axis and "
+                           "the plots' viewing axis (default: +z; -y when every input is --kitti, whose camera-0 "
+                           "world has y down)")
     loop.add_argument("--keyframe-distance", type=float, default=0.2, metavar="M",
                       help="new keyframe when the body moved more than M metres ... (default: 0.2)")
     loop.add_argument("--keyframe-angle", type=float, default=10.0, metavar="DEG",

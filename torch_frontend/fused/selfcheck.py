@@ -5,7 +5,7 @@ own rounding: a compiler that contracted ``a * b + c`` into an FMA, an approxima
 root, a flush-to-zero would change bits only on the GPU. Before the fused CUDA kernels are used on a
 device, :func:`cuda_selfcheck` runs them on :func:`case` (two synthetic 8-bit frames, a shift of a few
 pixels, points inside, at the edge, outside, invalid, with an initial guess, with the forward-backward
-check) and compares every output bit with :data:`EXPECTED`, which the CPU kernels produced
+check; CLAHE of both frames) and compares every output bit with :data:`EXPECTED`, which the CPU kernels produced
 (``tests/test_fused.py`` holds the two equal). Any difference: the fused backend is refused on CUDA,
 with the reason, and the tensor kernels run (one warning, ``fused.resolve_backend``). It runs once per
 process, at the first resolution of the backend on CUDA (tracker construction, a ``track_lk`` call),
@@ -28,7 +28,7 @@ __all__ = ["case", "digest", "cuda_selfcheck", "EXPECTED", "run_case"]
 
 #: sha256 of the CPU kernels' outputs on :func:`case` (regenerate with ``python -m torch_frontend.fused.selfcheck``
 #: after a change to the kernels that is meant to move bits; tests/test_fused.py checks it)
-EXPECTED = "c22ce355b2e5542a18969a10f2de304ea7f356f7f5faa5913f555d4ee36f3322"
+EXPECTED = "9bfbcabd24a5edd0061622c2c7576c239c84d7c6920ad757d6442d802ff8bedb"
 
 _H, _W = 72, 104
 _MAX_LEVEL, _PAD, _WIN = 2, 22, 21
@@ -81,7 +81,9 @@ def digest(*outputs: torch.Tensor) -> str:
 
 def run_case(device) -> str:
     """The fused ops on :func:`case` on ``device`` (both pyramids; the LK plain, with a guess, with the
-    forward-backward check), as one :func:`digest`."""
+    forward-backward check; CLAHE of both frames, VINS's and a padded grid, with and without
+    clipping), as one :func:`digest`."""
+    from .clahe_op import clahe_op
     from .ops import lk_op, pyramid_op
 
     c = {k: v.to(device) for k, v in case().items()}
@@ -91,6 +93,8 @@ def run_case(device) -> str:
     for init, fb in ((None, -1), (c["init"], -1), (None, 1)):
         outs += list(lk_op(P, Q, c["pts"], c["valid"], init, _H, _W, _PAD, _PAD, _MAX_LEVEL, _WIN, _WIN, 30, 0.01,
                            1e-4, fb, 0.5, True))
+    for img, clip, gx, gy in ((c["prev"], 3.0, 8, 8), (c["next"], 2.0, 5, 3), (c["next"], 0.0, 4, 4)):
+        outs.append(clahe_op(img, clip, gx, gy))  # 104 % 5 != 0: the reflect-101 padded histogram source
     return digest(*outs)
 
 

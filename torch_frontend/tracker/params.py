@@ -62,6 +62,10 @@ class TrackerParams:
         lk_backend: the pyramid's and the LK's kernels, resolved (``fused.resolve_backend``):
             ``"fused"`` (one custom op each, OpenCV's bits; ``FeatureTracker``'s default on the CPU
             and CUDA) or ``"tensor"`` (the tensor kernels; the default of params built by hand).
+        clahe_backend: CLAHE's kernel, resolved (``fused.resolve_clahe_backend``): ``"fused"`` (the
+            one op ``torch_frontend::clahe``; ``FeatureTracker``'s default on the CPU and CUDA) or
+            ``"tensor"`` (``equalize``'s tensor CLAHE; the default of params built by hand). The
+            same bits either way.
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -84,6 +88,7 @@ class TrackerParams:
     differentiable: bool = False
     lk_grad_mode: str = "implicit"
     lk_backend: str = "tensor"
+    clahe_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream

@@ -65,9 +65,11 @@ def equalize(img: Tensor, params: TrackerParams) -> Tensor:
         return img
     gx, gy = params.clahe_tile_grid
     if params.differentiable:  # a float image with a graph: the 8-bit values and a slope
-        out = _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable)
+        out = _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable,
+                                      backend=params.clahe_backend)
     else:
-        out = _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable).image
+        out = _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable,
+                          backend=params.clahe_backend).image
     return out.unsqueeze(1)
 
 
