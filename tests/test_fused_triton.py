@@ -105,13 +105,15 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     out = _run(_PTX_SCRIPT, interpret=False)
     report = json.loads(out.strip().splitlines()[-1])
     assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "clahe_lut",
-                           "clahe_blend", "mask_decide", "mask_draw"}, sorted(report)
+                           "clahe_blend", "mask_decide", "mask_draw", "ransac_score",
+                           "ransac_score_state"}, sorted(report)
     for name, r in report.items():
         assert r["fma"] == [], (name, r)
         assert r["approx"] == 0 and r["div_full"] == 0 and r["ftz"] == 0, (name, r)
         assert r["no_rn"] == [], (name, r)
     # the LK really is float code (the checks above are not vacuous)
     assert report["lk"]["n_float_ops"] > 100, report["lk"]
+    assert report["ransac_score"]["n_float_ops"] > 50, report["ransac_score"]
     assert time.time() - t0 < _TIMEOUT
 
 
@@ -483,3 +485,50 @@ def _scenario_mask():
 def test_set_mask_matches_the_cpu_kernel_interpreted():
     """setMask's decide and draw kernels under the interpreter: the CPU kernel's bits on every case."""
     _run_scenario("mask")
+
+
+# ------------------------------------------------------------------------------- F-RANSAC scoring
+def _scenario_ransac():
+    """``torch_frontend::ransac_score``'s Triton kernel (interpreted) equals the CPU kernel on every
+    output: the self-check case, fresh and with a running state, and a block of real 7-point models
+    (two problems of 40 and 30 planted points, one of 12: passed through) at thresholds 1 and 0.5."""
+    import torch
+
+    from torch_frontend.fused._triton_ransac import ransac_score_cuda
+    from torch_frontend.fused.ransac_op import ransac_score_op, selfcheck_case
+    from torch_frontend.ransac.bounds import _niters_table
+    from torch_frontend.ransac.capturable import _front_capturable
+    from torch_frontend.ransac.samples import OPENCV_SEED, _state_of
+
+    from ._ransac_cases import _plant, _scatter, _synthetic_scenes
+
+    cases = [(selfcheck_case(), 1.0)]
+    rng = np.random.default_rng(2)
+    sets = [(a[:k], _plant(a[:k], c[:k], 0.3, rng)[0]) for (a, c), k in
+            zip(_synthetic_scenes(k=3, n=40, noise=0.3, seed=4), (40, 30, 12))]
+    p1, p2, valid, _ = _scatter(sets, 44, rng)
+    sp = _front_capturable(p1.float(), p2.float(), valid, 0.99, 12, [_state_of(OPENCV_SEED)] * 3, None)
+    for thr2 in (1.0, 0.25):
+        cases.append(((sp.Fm, sp.fok, sp.x12, sp.eff, sp.n, _niters_table(44, 1000, 0.99)), thr2))
+    for args, thr2 in cases:
+        B = args[0].shape[0]
+        state = (torch.full((B,), 4, dtype=torch.int64), torch.full((B,), 8, dtype=torch.int64),
+                 torch.full((B,), 30, dtype=torch.int64), torch.full((B,), 1, dtype=torch.int64))
+        for st in ((None,) * 4, state):
+            ref = ransac_score_op(*args, *st, thr2)
+            got = ransac_score_cuda(*args, *st, thr2)
+            for r, g in zip(ref, got):
+                assert torch.equal(r, g), (thr2, st[0] is None, r, g)
+    # slots in several lane blocks (N = 40 in blocks of 16: the count and mask loops over chunks)
+    import torch_frontend.fused._triton_ransac as tr
+
+    tr._MAX_BLOCK = 16
+    args = selfcheck_case()
+    for r, g in zip(ransac_score_op(*args, None, None, None, None, 1.0),
+                    ransac_score_cuda(*args, None, None, None, None, 1.0)):
+        assert torch.equal(r, g), ("chunks", r, g)
+    print("PASS ransac")
+
+
+def test_ransac_score_matches_cpu_interpreted():
+    _run_scenario("ransac")

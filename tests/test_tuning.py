@@ -61,7 +61,10 @@ def test_strategy_by_device():
     assert (_tuning.CPU.lk_backend, _tuning.CUDA.lk_backend, _tuning.ONE_PASS.lk_backend) == ("fused", "fused", "tensor")
     assert (_tuning.CPU.clahe_backend, _tuning.CUDA.clahe_backend, _tuning.ONE_PASS.clahe_backend) == \
         ("fused", "fused", "tensor")
-    assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor", clahe_backend="tensor") == _tuning.ONE_PASS
+    assert (_tuning.CPU.ransac_backend, _tuning.CUDA.ransac_backend, _tuning.ONE_PASS.ransac_backend) == \
+        ("fused", "fused", "tensor")
+    assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor", clahe_backend="tensor",
+                               ransac_backend="tensor") == _tuning.ONE_PASS
     one = _tuning.ONE_PASS
     assert one.clahe_rows(64 * 480, 752) == [(0, 64 * 480)]
     assert one.pyramid_streams(64, 480, 752) is None

@@ -92,6 +92,11 @@ class Strategy:
     #: bits). bench_clahe.py (752x480, 1 thread): see benchmarks/results/clahe.json. A call or a tracker
     #: overrides it (``clahe_backend=``)
     clahe_backend: str = "tensor"
+    #: F-RANSAC's scoring, counting, best model and iteration bound: ``"fused"``, one custom op per
+    #: round (``fused/ransac_op.py``: numba on the CPU, Triton on CUDA; OpenCV's ``computeError`` bits),
+    #: or ``"tensor"`` (``ransac/scoring.py`` and the scans of ``eager.py`` / ``capturable.py``).
+    #: ``find_fundamental(backend=...)`` overrides it; ``fused.resolve_ransac_backend`` resolves it
+    ransac_backend: str = "tensor"
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -160,6 +165,7 @@ CPU = Strategy(
     clahe_block_keys=False,
     lk_backend="fused",
     clahe_backend="fused",
+    ransac_backend="fused",
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -183,8 +189,8 @@ ONE_PASS = Strategy(
     clahe_block_keys=True,
 )
 
-#: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK and CLAHE
-CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused")
+#: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE and RANSAC's scoring
+CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", ransac_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)

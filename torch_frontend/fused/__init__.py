@@ -32,7 +32,7 @@ from ..errors import ConfigError
 from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
 
 __all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
-           "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason"]
+           "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_ransac_backend"]
 
 #: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
 BACKENDS = ("auto", "fused", "tensor")
@@ -166,4 +166,63 @@ def resolve_clahe_backend(requested: Optional[str], device) -> str:
         raise ConfigError(f"clahe_backend='fused' cannot run on {dev.type}: {why}")
     warn_once(f"torch_frontend: the fused CLAHE cannot run on {dev.type} ({why}); the tensor CLAHE runs instead "
               "(the same bits, docs/kernels.md)")
+    return "tensor"
+
+
+# ---------------------------------------------------------------------------------------------
+# F-RANSAC's scoring op (fused/ransac_op.py): its own availability (its modules, its CUDA self-check)
+
+_RANSAC_STATUS: dict = {}
+
+
+def _probe_ransac(kind: str) -> Optional[str]:
+    if kind == "cpu":
+        try:
+            from . import _numba_ransac, ransac_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001
+            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return None
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            return None  # simulated device, fakes: the CPU kernel runs
+        try:
+            from . import _triton_ransac, ransac_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001
+            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return ransac_op.cuda_selfcheck()
+    return f"no fused kernel for device type {kind!r}"
+
+
+def resolve_ransac_backend(requested: Optional[str], device) -> str:
+    """The F-RANSAC scoring backend (``"fused"`` or ``"tensor"``) for ``requested`` on ``device``, as
+    :func:`resolve_backend` does for the LK (``Strategy.ransac_backend``; ``"auto"`` falls back with one
+    warning, an explicit ``"fused"`` that cannot run is a ``ConfigError``). The two give the same
+    inlier masks up to OpenCV's float32 rounding of an error at the threshold (docs/kernels.md)."""
+    from .. import _tuning
+
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"ransac_backend must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and _tuning.for_device(dev).ransac_backend != "fused":
+        return "tensor"
+    with _LOCK:
+        known = dev.type in _RANSAC_STATUS
+        why = _RANSAC_STATUS.get(dev.type)
+    if not known:
+        why = _probe_ransac(dev.type)
+        capturing = dev.type == "cuda" and torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
+        if capturing and why is not None:  # a self-check cannot run inside a capture: ask again later
+            raise ConfigError("the fused RANSAC scoring is resolved on its first call, which must run outside a "
+                              f"CUDA graph capture ({why}); make a first call (or build the tracker) before capturing")
+        with _LOCK:
+            why = _RANSAC_STATUS.setdefault(dev.type, why)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"ransac_backend='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused RANSAC scoring cannot run on {dev.type} ({why}); the tensor scoring "
+              "runs instead (docs/kernels.md)")
     return "tensor"

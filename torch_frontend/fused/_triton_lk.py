@@ -594,3 +594,10 @@ def _compile_all(target, out: Dict[str, str]) -> None:
     for name, (kern, sig, consts, warps) in _triton_mask.KERNELS.items():
         src = ASTSource(fn=kern, signature=sig, constexprs=consts)
         out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS, "num_warps": warps}).asm["ptx"]
+
+    from . import _triton_ransac  # the F-RANSAC scoring (fused/ransac_op.py)
+
+    for name, (kern, has_state) in _triton_ransac.KERNELS.items():
+        src = ASTSource(fn=kern, signature=_triton_ransac.SIGNATURES, constexprs=_triton_ransac.constexprs(has_state))
+        out[name] = triton.compile(src, target=target, options={
+            **_COMPILE_OPTIONS, "num_warps": _triton_ransac.NUM_WARPS}).asm["ptx"]

@@ -138,6 +138,9 @@ if __name__ == "__main__":  # print the CPU kernels' digest (to store in EXPECTE
     t0 = time.perf_counter()
     got = run_case("cpu")
     if "--warm" in sys.argv[1:]:
+        from .ransac_op import cuda_selfcheck as _ransac_check
+
+        _ransac_check("cpu")  # compiles the F-RANSAC scoring kernel too (its CPU run against itself)
         print(f"torch_frontend: the fused CPU kernels are compiled and cached ({time.perf_counter() - t0:.1f} s)")
     else:
         print(got)

@@ -37,11 +37,12 @@ constants). :func:`_find_fundamental_impl` picks the driver.
 
 from __future__ import annotations
 
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import torch
 
 from .._checks import check_points, check_shape, default_valid
+from .._compiler import constant_result
 from .bounds import ransac_update_num_iters
 from .capturable import _find_fundamental_capturable
 from .eager import _find_fundamental_eager
@@ -93,6 +94,7 @@ def find_fundamental(
     seed: Union[None, int, Sequence[int], torch.Tensor] = None,
     capturable: bool = False,
     method: str = "opencv",
+    backend: Optional[str] = None,
 ) -> FundamentalResult:
     """Robust fundamental matrices for B point-set pairs at once (``cv2.findFundamentalMat`` with
     ``FM_RANSAC``, batched).
@@ -123,6 +125,13 @@ def find_fundamental(
             default block.
         method: ``"opencv"`` (default): OpenCV's FM_RANSAC exactly, the convention below.
             ``"lo"``: LO-RANSAC on the same hypotheses, see "LO-RANSAC" below.
+        backend: how the OpenCV method scores and counts its 7-point models: None / ``"auto"``
+            (default: ``_tuning.Strategy.ransac_backend``, ``"fused"`` on the CPU and CUDA),
+            ``"fused"`` (one ``torch_frontend::ransac_score`` op per round: numba / Triton,
+            OpenCV's ``computeError`` in its double order and its float32 comparison, stopping at
+            OpenCV's last sample) or ``"tensor"`` (``scoring.py``: ``d^2 <= thr^2 min(s1, s2)`` in
+            float64 matmuls). The masks are the same but for an error within float32 rounding of
+            the threshold, where the fused test is OpenCV's. ``docs/kernels.md``, "F-RANSAC".
 
     Returns:
         :class:`FundamentalResult` ``(F, inliers)`` with extra attributes ``ok``, ``num_iters``,
@@ -202,7 +211,7 @@ def find_fundamental(
     states = _seeds(valid.shape[0], generator, seed)
     return FundamentalResult.from_fit(_find_fundamental_impl(p1, p2, valid, float(threshold), float(confidence),
                                                              max_iters, states, H, capturable=capturable,
-                                                             method=method))
+                                                             method=method, backend=backend))
 
 
 def _find_fundamental_impl(
@@ -217,6 +226,7 @@ def _find_fundamental_impl(
     *,
     capturable: bool = False,
     method: str = "opencv",
+    backend: Optional[str] = None,
 ) -> FundamentalFit:
     """:func:`find_fundamental` without input checks: the kernel the tracker's stage calls.
 
@@ -234,6 +244,9 @@ def _find_fundamental_impl(
             ``overflow`` is False.
         method: ``"opencv"`` (OpenCV's FM_RANSAC, exactly: ``eager.py`` / ``capturable.py``) or
             ``"lo"`` (LO-RANSAC, see :func:`find_fundamental`; ``lo.py``).
+        backend: the OpenCV method's scoring: None / ``"auto"`` (``Strategy.ransac_backend``),
+            ``"fused"`` (``torch_frontend::ransac_score``, OpenCV's ``computeError`` bits) or
+            ``"tensor"`` (``scoring.py``); see :func:`find_fundamental`.
 
     Returns:
         :class:`FundamentalFit` ``(F, inliers, ok, num_iters, method, overflow)``: ``overflow`` a
@@ -243,6 +256,17 @@ def _find_fundamental_impl(
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     if method == "lo":
         solve = _find_fundamental_lo_capturable if capturable else _find_fundamental_lo
-    else:
-        solve = _find_fundamental_capturable if capturable else _find_fundamental_eager
-    return solve(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses)
+        return solve(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses)
+    solve = _find_fundamental_capturable if capturable else _find_fundamental_eager
+    fused = _scoring_backend(backend, p1.device.type) == "fused"
+    return solve(p1, p2, valid, threshold, confidence, max_iters, states, batch_hypotheses, fused=fused)
+
+
+@constant_result
+def _scoring_backend(requested: Optional[str], device_type: str) -> str:
+    """``fused.resolve_ransac_backend`` (a constant for ``torch.compile``: resolved once, outside the
+    graph; on CUDA the first resolution runs the kernel's self-check, so make a first call outside
+    any capture, as the capturable path's tables need anyway)."""
+    from ..fused import resolve_ransac_backend
+
+    return resolve_ransac_backend(requested, device_type)

@@ -50,6 +50,12 @@ def _niters_table(N: int, max_iters: int, confidence: float) -> torch.Tensor:
     return torch.where(b > _MODEL_POINTS - 1, it, cap)
 
 
+def _table_rows(N: int) -> int:
+    """The ``N`` of the bound table a group of at most ``N`` points looks up (a power of two, at
+    least 256: entries depend on ``(n, best)`` only, so one cached table serves every width)."""
+    return max(256, 1 << max(int(N) - 1, 0).bit_length())
+
+
 @cached(8)
 def _niters_table_on(N: int, max_iters: int, confidence: float, device: torch.device) -> torch.Tensor:
     """:func:`_niters_table` on ``device`` (cached: the LO-RANSAC default path's bound look-up)."""

@@ -223,7 +223,7 @@ def _fit_capturable(sp: _Front, F, inl, ok, iters, overflow, out_dtype) -> Funda
 
 
 def _find_fundamental_capturable(p1, p2, valid, threshold: float, confidence: float, max_iters: int,
-                                 states: Sequence[int], block) -> FundamentalFit:
+                                 states: Sequence[int], block, fused: bool = False) -> FundamentalFit:
     """``_find_fundamental_impl(..., capturable=True)``: static shapes, no host syncs after a
     warm-up call with the same ``(states, N, max_iters, confidence, block)``, a kernel count
     independent of B and of the data.
@@ -241,12 +241,28 @@ def _find_fundamental_capturable(p1, p2, valid, threshold: float, confidence: fl
 
     ``overflow``: a RANSAC problem that did not reach its bound within ``K`` samples, or an LMedS
     problem when ``K < L``; never with the default block.
+
+    ``fused``: the scoring, the counts and the replay are one ``torch_frontend::ransac_score`` op
+    (``fused/ransac_op.py``; one launch, no sync), which walks the block in OpenCV's order and stops
+    at its last sample: no ``(B, 3 K, N)`` scores or masks.
     """
     sp = _front_capturable(p1, p2, valid, confidence, max_iters, states, block)
     if isinstance(sp, FundamentalFit):  # N < 8
         return sp
     F, inl, ok, iters, overflow = _lmeds_capturable(sp)
-    if sp.has_r:
+    if sp.has_r and fused:
+        from ..fused.ransac_op import ransac_score_op
+
+        best, nit, used, k_r, inl_r = ransac_score_op(sp.Fm, sp.fok, sp.x12, sp.eff, sp.n, sp.tabs.niters,
+                                                      None, None, None, None, threshold * threshold)
+        is_r = sp.is_r
+        F = torch.where(is_r[:, None], sp.Fm.gather(1, k_r.clamp_min(0)[:, None, None].expand(-1, 1, 9))[:, 0], F)
+        inl = torch.where(is_r[:, None], inl_r, inl)
+        ok = torch.where(is_r, best > _MODEL_POINTS - 1, ok)
+        iters = torch.where(is_r, used, iters)
+        over_r = is_r & (used < nit)
+        overflow = over_r if overflow is None else overflow | over_r
+    elif sp.has_r:
         # RANSAC (>= 15 points): the inlier count of every model, then OpenCV's loop replayed
         B, N, K, k, tabs, per_n, is_r = sp.B, sp.N, sp.K, sp.k, sp.tabs, sp.per_n, sp.is_r
         mask, cnt = _counts_capturable(sp, threshold * threshold)

@@ -27,7 +27,7 @@ import torch
 
 from .. import _tuning
 from .._checks import gather_slots, valid_first_order
-from .bounds import _lmeds_iters, ransac_update_num_iters
+from .bounds import _lmeds_iters, _niters_table_on, _table_rows, ransac_update_num_iters
 from .consts import _consts
 from .result import (
     _MIN_POINTS,
@@ -61,7 +61,7 @@ def _lmeds_sigma_scale(n: torch.Tensor) -> torch.Tensor:
     return 2.5 * 1.4826 * (1.0 + 5.0 / (n - _MODEL_POINTS).clamp_min(1).to(torch.float64))
 
 
-def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lmeds):
+def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lmeds, fused=False):
     """Run RANSAC (``lmeds=False``) or LMedS on one group of problems (all rows use one method).
 
     ``x12: (G, N, 4)`` float64 ``(x1, y1, x2, y2)``, finite (zero at masked-out slots), valid slots
@@ -76,6 +76,10 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
     (``_tuning.Strategy.ransac_*``): a first round of ``ransac_first_round`` samples, then each
     round takes all samples still allowed by the current bound (it only shrinks), capped by ``H``
     / the memory budget ``ransac_round_elems``.
+
+    ``fused`` (RANSAC only): each round's models are scored, counted and replayed by one
+    ``torch_frontend::ransac_score`` op (``fused/ransac_op.py``), which stops at OpenCV's last
+    sample of the round instead of scoring the whole round.
     """
     G, N = valid.shape
     dev = x12.device
@@ -85,14 +89,20 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
     nf = n.to(torch.float64)
     num = _lmeds_iters(confidence, max_iters) if lmeds else max(int(max_iters), 1)
     streams = [_subset_stream(st, nb) for st, nb in zip(states, n_host)]
-    h1 = _homogeneous(x12[..., :2], valid)
-    h2 = _homogeneous(x12[..., 2:], valid)
+    fused = fused and not lmeds
+    # the tensor scoring's homogeneous points (the fused op reads x12 and valid itself)
+    h1 = None if fused else _homogeneous(x12[..., :2], valid)
+    h2 = None if fused else _homogeneous(x12[..., 2:], valid)
     best_F = torch.zeros(G, 3, 3, dtype=torch.float64, device=dev)
     best_inl = torch.zeros(G, N, dtype=torch.bool, device=dev)  # RANSAC: the best model's mask
     best_score = torch.full((G,), float("inf") if lmeds else -1.0, dtype=torch.float64, device=dev)
     done = torch.zeros(G, dtype=torch.int64, device=dev)
     niters = torch.full((G,), num, dtype=torch.int64, device=dev)
     done_h, niters_h = [0] * G, [num] * G
+    if fused:
+        from ..fused.ransac_op import ransac_score_op
+
+        table = _niters_table_on(_table_rows(N), max_iters, confidence, dev)
     rnd = 0
     while True:
         if rnd:
@@ -115,13 +125,15 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
             idx_np[j, : hi - lo] = streams[i].upto(hi)[lo:hi]
             ok_np[j, : hi - lo] = True
         idx = torch.from_numpy(idx_np).to(dev)
-        g_ok = torch.from_numpy(ok_np).to(dev)
+        g_ok = None if fused else torch.from_numpy(ok_np).to(dev)
         if A == G:  # common case (B = 1, or all problems still running): no gathers
             a12, b1, b2, d0, n0, nfa, prev = x12, h1, h2, done, niters, nf, best_score
+            av, an = valid, n
         else:
             act = torch.tensor(act_l, dtype=torch.int64, device=dev)
-            a12, b1, b2 = x12[act], h1[act], h2[act]
+            a12, b1, b2 = x12[act], (None if fused else h1[act]), (None if fused else h2[act])
             d0, n0, nfa, prev = done[act], niters[act], nf[act], best_score[act]
+            av, an = valid[act], n[act]
         flat = idx.view(A, Hr * _MODEL_POINTS, 1).expand(-1, -1, 4)
         smp = a12.gather(1, flat).view(A * Hr, _MODEL_POINTS, 2, 2)
         n_live = int(ok_np.sum())
@@ -150,6 +162,15 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
             better = cand < prev
             new_n = n0
             used = torch.minimum(d0 + Hr, n0) - d0
+        elif fused:
+            # scoring, counts, OpenCV's sequential acceptance and bound, its stopping sample: one op
+            live = torch.from_numpy(ok_np.sum(1)).to(dev)
+            bst, new_n, dn, k, new_inl = ransac_score_op(Fh.view(A, Hr * 3, 9), fok, a12, av, an, table, live,
+                                                         prev.to(torch.int64), n0, d0, thr2)
+            better = k >= 0
+            k = k.clamp_min(0)
+            cand = bst.to(torch.float64)
+            used = dn - d0
         else:
             if A * Hr * 3 * N > strategy.ransac_compact_elems:
                 # score only real roots: most samples have one, so move valid models to the front
@@ -186,8 +207,9 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
         newF = Fh.gather(1, k[:, None, None, None].expand(-1, 1, 3, 3))[:, 0]
         if not lmeds:
             # keep the winning model's mask of this round (OpenCV keeps the mask it counted, too)
-            col = k if vorder is None else (vorder == k[:, None]).to(torch.int8).argmax(1)
-            new_inl = mask.gather(2, col[:, None, None].expand(-1, N, 1))[..., 0]
+            if not fused:
+                col = k if vorder is None else (vorder == k[:, None]).to(torch.int8).argmax(1)
+                new_inl = mask.gather(2, col[:, None, None].expand(-1, N, 1))[..., 0]
             if A == G:
                 best_inl = torch.where(better[:, None], new_inl, best_inl)
             else:
@@ -216,9 +238,10 @@ def _robust_group(x12, valid, n_host, states, thr2, confidence, max_iters, H, lm
 
 def _find_fundamental_eager(p1: torch.Tensor, p2: torch.Tensor, valid: torch.Tensor, threshold: float,
                             confidence: float, max_iters: int, states: Sequence[int], batch_hypotheses,
-                            pts: _Points | None = None) -> FundamentalFit:
+                            pts: _Points | None = None, fused: bool = False) -> FundamentalFit:
     """``_find_fundamental_impl(..., method="opencv")`` on the default path (arguments as there;
-    ``pts``: :func:`_opencv_points` of the call when the caller has them). The problems are
+    ``pts``: :func:`_opencv_points` of the call when the caller has them; ``fused``: RANSAC's
+    scoring by the fused op, see :func:`_robust_group`). The problems are
     grouped by method (RANSAC rows, LMedS rows), each group compacted to its valid slots and solved
     by :func:`_robust_group`."""
     B, N = valid.shape
@@ -235,7 +258,7 @@ def _find_fundamental_eager(p1: torch.Tensor, p2: torch.Tensor, valid: torch.Ten
         order, (gv, g12) = _compact(pts.eff[rows], pts.x12[rows], width=max(n_host[b] for b in sel))
         gF, ginl, gok, gdone = _robust_group(
             g12, gv, [n_host[b] for b in sel], [states[b] for b in sel], threshold * threshold,
-            confidence, max_iters, batch_hypotheses, lmeds,
+            confidence, max_iters, batch_hypotheses, lmeds, fused,
         )
         full_inl = torch.zeros(len(sel), N, dtype=torch.bool, device=dev).scatter_(1, order, ginl)
         F[rows] = torch.where(gok[:, None, None], _canonical_sign(gF), F[rows])

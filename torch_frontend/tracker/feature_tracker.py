@@ -26,7 +26,7 @@ import torch.utils._pytree as pytree
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
-from ..fused import resolve_backend, resolve_clahe_backend
+from ..fused import resolve_backend, resolve_clahe_backend, resolve_ransac_backend
 from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
@@ -285,6 +285,7 @@ class FeatureTracker:
         self.lk_backend = resolve_backend(lk_backend, self.device)
         #: CLAHE's kernel, ``"fused"`` or ``"tensor"`` (resolved for this device; the same bits)
         self.clahe_backend = resolve_clahe_backend(clahe_backend, self.device)
+        resolve_ransac_backend(None, self.device)  # the RANSAC op's probe (CUDA: its self-check) here, outside any capture
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
                        lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
                        lk_backend=self.lk_backend, clahe_backend=self.clahe_backend)
