@@ -1,0 +1,365 @@
+"""``goodFeaturesToTrack`` as VINS calls it, on the CPU: a numba kernel (``docs/kernels.md``, "Detection").
+
+Convention:
+    ``img`` ``(B, H, W)`` uint8; ``mask`` ``(B, H, W)`` uint8 (non-zero = allowed) or ignored when
+    ``has_mask`` is False; ``mc`` ``(B,)`` int64 corners per stream (clipped to ``K``; ``<= 0``: none);
+    ``out_pts`` ``(B, K, 2)`` float32 pixel positions ``(x, y)``, ``out_valid`` ``(B, K)`` bool, both
+    zero-filled by the caller. Block size 3, Sobel aperture 3, the min-eigenvalue response.
+
+The contract (the tensor reference: ``corners.responses._min_eigen_impl`` and
+``corners.selection._select_corners``, bit for bit):
+
+1. ``dx``, ``dy``: the Sobel-3 derivatives of the grey levels, BORDER_REFLECT_101, integers;
+   ``Sxx``, ``Sxy``, ``Syy``: their products summed over the 3x3 block, BORDER_REFLECT_101 on the
+   product planes, integers below 2**24 (9 x 1020²), so int32 here and exact as float32;
+2. the response, in float32 without FMA: ``d = Sxx - Syy``; ``disc = d * d + (4 Sxy) * Sxy``;
+   ``r = ((Sxx + Syy) - sqrt(disc)) * c`` with ``c = float32(0.5 / 3060²)``;
+3. ``maxVal`` = the largest response over the mask (the image without one; 0 for an empty mask),
+   ``thr = float32(double(maxVal) * quality)``, ``t = r if r > thr else 0``;
+4. candidates: ``1 <= x <= W - 2``, ``1 <= y <= H - 2``, mask set, ``t != 0`` and ``t`` equal to
+   the 3x3 maximum of ``t``;
+5. order: response descending, ties later raster position first (OpenCV's ``greaterThanPtr``);
+6. greedy: a candidate is taken unless an accepted corner lies at ``d² < min_distance²`` in one of
+   the 3x3 grid cells (cell ``cvRound(min_distance)``) around it; none is tested when
+   ``min_distance < 1``; at most ``mc`` corners.
+
+**Only where the mask matters.** The response at a pixel depends on the image only: its own 3x3
+block of products, each of which depends on a 3x3 block of grey levels; every value is computed
+from its own inputs by the same operations, whatever else is computed (no running sums across a
+row, unlike OpenCV's box filter). The selection reads the response at (a) every mask pixel (the
+maximum, step 3) and (b) the 3x3 neighbours of a candidate, which is a mask pixel (step 4). So the
+response is computed on ``need = dilate3x3(mask)`` (clipped to the image) and nowhere else, and its
+products on ``dilate3x3(need)`` (a reflected index is at most one pixel from its source, so the
+reflection stays inside that dilation). Every value read is computed exactly as on the whole image,
+so the corners keep every bit; the pixels skipped (masked discs around tracked features, and
+outside a fisheye mask) are never read. OpenCV computes ``cornerMinEigenVal`` over the whole image
+and ``dilate`` over it too, then scans the whole image for candidates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["gftt_streams", "RESP_SCALE"]
+
+#: ``0.5 * scale²`` of the response, ``scale = 1 / (4 * 3 * 255)`` (aperture 3, block 3, 8-bit), as the
+#: tensor path's ``mul_`` rounds it (to float32)
+RESP_SCALE = np.float32(0.5 * (1.0 / (4.0 * 3 * 255.0)) ** 2)
+
+
+@njit(cache=True, nogil=True)
+def _refl(i, n):
+    """BORDER_REFLECT_101 of an index at most one out of ``[0, n)`` (``n >= 2``)."""
+    if i < 0:
+        return -i
+    if i >= n:
+        return 2 * n - 2 - i
+    return i
+
+
+@njit(cache=True, nogil=True)
+def _dilate_rows(src, dst, H, W):
+    """``dst = dilate3x3(src != 0)`` clipped to the image, uint8 0/1 (``dst`` distinct from ``src``)."""
+    for y in range(H):
+        r = dst[y]
+        y0, y1 = max(y - 1, 0), min(y + 2, H)
+        for x in range(W):
+            r[x] = 0
+        for yy in range(y0, y1):
+            s = src[yy]
+            for x in range(W):
+                if s[x] != 0:
+                    r[x] = 1
+        # horizontal: a running "any of x - 1, x, x + 1" in place
+        prev = 0
+        for x in range(W):
+            cur = r[x]
+            nxt = r[x + 1] if x + 1 < W else 0
+            r[x] = 1 if (prev | cur | nxt) else 0
+            prev = cur
+
+
+@njit(cache=True, nogil=True)
+def _products(a, b, c, x0, x1, W, pxx, pxy, pyy):
+    """Sobel-3 products of the row between ``a`` (above) and ``c`` (below) at columns ``[x0, x1)``,
+    reflect-101 at the left and right edges. Every value is an integer below 2**24 (float32 exact;
+    float32 lanes vectorise where numba's int32 arithmetic widens to int64), and the loops index
+    slices from 0 (no negative index: numba's wrap-around check would block the vectoriser)."""
+    lo = max(x0, 1)
+    hi = min(x1, W - 1)
+    if x0 == 0:  # column 0: x - 1 reflects to 1
+        dy = (np.float32(c[1]) + np.float32(2.0) * np.float32(c[0]) + np.float32(c[1])) - (
+            np.float32(a[1]) + np.float32(2.0) * np.float32(a[0]) + np.float32(a[1]))
+        pxx[0], pxy[0], pyy[0] = np.float32(0.0), np.float32(0.0), dy * dy
+    n = hi - lo
+    if n > 0:
+        al, am, ar = a[lo - 1:hi - 1], a[lo:hi], a[lo + 1:hi + 1]
+        bl, br = b[lo - 1:hi - 1], b[lo + 1:hi + 1]
+        cl, cm, cr = c[lo - 1:hi - 1], c[lo:hi], c[lo + 1:hi + 1]
+        oxx, oxy, oyy = pxx[lo:hi], pxy[lo:hi], pyy[lo:hi]
+        two = np.float32(2.0)
+        for i in range(n):
+            dx = (np.float32(ar[i]) - np.float32(al[i])) + two * (np.float32(br[i]) - np.float32(bl[i])) + (
+                np.float32(cr[i]) - np.float32(cl[i]))
+            dy = (np.float32(cl[i]) + two * np.float32(cm[i]) + np.float32(cr[i])) - (
+                np.float32(al[i]) + two * np.float32(am[i]) + np.float32(ar[i]))
+            oxx[i] = dx * dx
+            oxy[i] = dx * dy
+            oyy[i] = dy * dy
+    if x1 == W:  # column W - 1: x + 1 reflects to W - 2
+        x = W - 1
+        dy = (np.float32(c[x - 1]) + np.float32(2.0) * np.float32(c[x]) + np.float32(c[x - 1])) - (
+            np.float32(a[x - 1]) + np.float32(2.0) * np.float32(a[x]) + np.float32(a[x - 1]))
+        pxx[x], pxy[x], pyy[x] = np.float32(0.0), np.float32(0.0), dy * dy
+
+
+@njit(cache=True, nogil=True)
+def _response_row(P, r0, r1, r2, x0, x1, W, out, V):
+    """Responses of one row at columns ``[x0, x1)`` from the product rows ``r0, r1, r2`` of ``P (3, 3, W)``
+    (block 3, reflect-101 across columns); ``V (3, W)`` scratch (the vertical sums). Integer sums
+    below 2**24 in float32: exact, so any order gives the same values."""
+    a = max(x0 - 1, 0)
+    b = min(x1 + 1, W)
+    n = b - a
+    p0, p1, p2 = P[r0], P[r1], P[r2]
+    for k in range(3):
+        u0, u1, u2, v = p0[k, a:b], p1[k, a:b], p2[k, a:b], V[k, a:b]
+        for i in range(n):
+            v[i] = u0[i] + u1[i] + u2[i]
+    vxx, vxy, vyy = V[0], V[1], V[2]
+    if x0 == 0:
+        _response_px(vxx[1] + vxx[0] + vxx[1], vxy[1] + vxy[0] + vxy[1], vyy[1] + vyy[0] + vyy[1], out, 0)
+    lo = max(x0, 1)
+    hi = min(x1, W - 1)
+    n = hi - lo
+    if n > 0:
+        o = out[lo:hi]
+        xl, xm, xr = vxx[lo - 1:hi - 1], vxx[lo:hi], vxx[lo + 1:hi + 1]
+        yl, ym, yr = vxy[lo - 1:hi - 1], vxy[lo:hi], vxy[lo + 1:hi + 1]
+        zl, zm, zr = vyy[lo - 1:hi - 1], vyy[lo:hi], vyy[lo + 1:hi + 1]
+        for i in range(n):
+            _response_px(xl[i] + xm[i] + xr[i], yl[i] + ym[i] + yr[i], zl[i] + zm[i] + zr[i], o, i)
+    if x1 == W:
+        x = W - 1
+        _response_px(vxx[x - 1] + vxx[x] + vxx[x - 1], vxy[x - 1] + vxy[x] + vxy[x - 1],
+                     vyy[x - 1] + vyy[x] + vyy[x - 1], out, x)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _response_px(sxx, sxy, syy, out, x):
+    """The float32 response of one pixel's integer sums (module docstring, step 2; no FMA)."""
+    fxx = np.float32(sxx)
+    fxy = np.float32(sxy)
+    fyy = np.float32(syy)
+    d = fxx - fyy
+    disc = d * d
+    disc = disc + (np.float32(4.0) * fxy) * fxy
+    out[x] = ((fxx + fyy) - np.sqrt(disc)) * RESP_SCALE
+
+
+@njit(cache=True, nogil=True, fastmath={"nnan", "nsz"})
+def _masked_max(v, m, x0, x1, mx):
+    """``max(mx, max(v[x] for x in [x0, x1) if m[x]))``: a maximum is exact in any order, and the
+    responses of a uint8 image are finite (``nnan`` lets LLVM vectorise the reduction)."""
+    ninf = np.float32(-np.inf)
+    for x in range(x0, x1):
+        u = v[x] if m[x] != 0 else ninf
+        mx = u if u > mx else mx
+    return mx
+
+
+@njit(cache=True, nogil=True, fastmath={"nnan", "nsz"})
+def _row_max(v, W, mx):
+    for x in range(W):
+        u = v[x]
+        mx = u if u > mx else mx
+    return mx
+
+
+@njit(cache=True, nogil=True)
+def _t_row(r, thr, W, t, hm):
+    """``t = r if r > thr else 0`` and its horizontal 3-maximum ``hm`` (columns 1 .. W - 2)."""
+    zero = np.float32(0.0)
+    for x in range(W):
+        u = r[x]
+        t[x] = u if u > thr else zero
+    tl, tm, tr, h = t[0:W - 2], t[1:W - 1], t[2:W], hm[1:W - 1]
+    for i in range(W - 2):
+        a = tl[i]
+        b = tm[i]
+        c = tr[i]
+        u = a if a > b else b
+        h[i] = u if u > c else c
+
+
+@njit(cache=True, nogil=True)
+def _cand_row(t1, h0, h1, h2, W, flag):
+    """``flag[x] = t1[x] != 0 and t1[x] == max(h0, h1, h2)[x]`` for columns 1 .. W - 2 (h1[x] >= t1[x])."""
+    zero = np.float32(0.0)
+    for x in range(1, W - 1):
+        v = t1[x]
+        flag[x] = (v != zero) & (v >= h0[x]) & (v >= h1[x]) & (v >= h2[x])
+
+
+@njit(cache=True, nogil=True)
+def _runs(flag, W, starts, stops):
+    """The runs of non-zero ``flag[:W]``: ``[starts[i], stops[i])``; returns their number."""
+    n = 0
+    x = 0
+    while x < W:
+        if flag[x] == 0:
+            x += 1
+            continue
+        starts[n] = x
+        while x < W and flag[x] != 0:
+            x += 1
+        stops[n] = x
+        n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _stream(img, m, has_mask, mc, quality, min_dist, cell, r2i, out_pts, out_valid, resp, need, pneed, P, keys,
+            head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag):
+    """One stream (module docstring); scratch passed in."""
+    H, W = img.shape
+    K = out_pts.shape[0]
+    n_max = min(mc, K)
+    if n_max <= 0:
+        return
+    if has_mask:
+        _dilate_rows(m, need, H, W)
+        _dilate_rows(need, pneed, H, W)
+    # responses: product rows j ring-buffered in P[j % 3], computed on pneed's runs of row j
+    mx = np.float32(-np.inf)
+    done = -1  # product rows < done + 1 are computed
+    for y in range(H):
+        last = min(y + 1, H - 1)
+        while done < last:
+            j = done + 1
+            a, b, c = img[_refl(j - 1, H)], img[j], img[_refl(j + 1, H)]
+            q = j % 3
+            if has_mask:
+                nr = _runs(pneed[j], W, starts, stops)
+                for i in range(nr):
+                    _products(a, b, c, starts[i], stops[i], W, P[q, 0], P[q, 1], P[q, 2])
+            else:
+                _products(a, b, c, 0, W, W, P[q, 0], P[q, 1], P[q, 2])
+            done = j
+        r0, r1, r2 = _refl(y - 1, H) % 3, y % 3, _refl(y + 1, H) % 3
+        if has_mask:
+            nr = _runs(need[y], W, starts, stops)
+            for i in range(nr):
+                _response_row(P, r0, r1, r2, starts[i], stops[i], W, resp[y], V)
+                mx = _masked_max(resp[y], m[y], starts[i], stops[i], mx)
+        else:
+            _response_row(P, r0, r1, r2, 0, W, W, resp[y], V)
+            mx = _row_max(resp[y], W, mx)
+    if not np.isfinite(mx):
+        mx = np.float32(0.0)
+    thr = np.float32(np.float64(mx) * quality)
+    # candidates (3x3 maximum of the thresholded response, interior, mask) -> keys that sort ascending
+    # in OpenCV's order: response descending (float bits made order-preserving), raster descending.
+    # Outside ``need`` the response rows hold stale values: they only reach the flags of pixels
+    # outside the mask, which are dropped.
+    bits = resp.view(np.int32)
+    ib = 1
+    while (1 << ib) < H * W:
+        ib += 1
+    top = (1 << ib) - 1
+    n = 0
+    for j in range(0, 2):
+        _t_row(resp[j], thr, W, T[j % 3], HM[j % 3])
+    for y in range(1, H - 1):
+        _t_row(resp[y + 1], thr, W, T[(y + 1) % 3], HM[(y + 1) % 3])
+        _cand_row(T[y % 3], HM[(y - 1) % 3], HM[y % 3], HM[(y + 1) % 3], W, flag)
+        mrow = m[y] if has_mask else ones
+        ba = bits[y]
+        for x in range(1, W - 1):
+            if not flag[x] or mrow[x] == 0:
+                continue
+            bv = np.int64(ba[x])
+            if bv < 0:
+                bv ^= 0x7FFFFFFF
+            keys[n] = ((np.int64(0x7FFFFFFF) - bv) << ib) + (top - (y * W + x))
+            n += 1
+    if n == 0:
+        return
+    srt = np.sort(keys[:n])
+    got = 0
+    if min_dist < 1:
+        for i in range(min(n, n_max)):
+            pix = top - (srt[i] & top)
+            out_pts[i, 0] = np.float32(pix % W)
+            out_pts[i, 1] = np.float32(pix // W)
+            out_valid[i] = True
+        return
+    gw = (W + cell - 1) // cell
+    gh = (H + cell - 1) // cell
+    for i in range(gw * gh):
+        head[i] = -1
+    for i in range(n):
+        pix = top - (srt[i] & top)
+        x = pix % W
+        y = pix // W
+        cx = x // cell
+        cy = y // cell
+        good = True
+        for yy in range(max(cy - 1, 0), min(cy + 2, gh)):
+            for xx in range(max(cx - 1, 0), min(cx + 2, gw)):
+                k = head[yy * gw + xx]
+                while k >= 0:
+                    ddx = x - ax[k]
+                    ddy = y - ay[k]
+                    if ddx * ddx + ddy * ddy < r2i:
+                        good = False
+                        break
+                    k = nxt[k]
+                if not good:
+                    break
+            if not good:
+                break
+        if not good:
+            continue
+        ax[got] = x
+        ay[got] = y
+        c = cy * gw + cx
+        nxt[got] = head[c]
+        head[c] = got
+        out_pts[got, 0] = np.float32(x)
+        out_pts[got, 1] = np.float32(y)
+        out_valid[got] = True
+        got += 1
+        if got >= n_max:
+            return
+
+
+@njit(cache=True, nogil=True)
+def gftt_streams(img, mask, has_mask, mc, quality, min_dist, cell, r2i, out_pts, out_valid, s0, s1):
+    """Streams ``s0 .. s1 - 1`` (module docstring). ``cell = cvRound(min_dist)``, ``r2i =
+    ceil(min_dist²)`` (a conflict is an integer ``d² < r2i``), from the caller."""
+    _, H, W = img.shape
+    K = out_pts.shape[1]
+    resp = np.empty((H, W), dtype=np.float32)
+    need = np.empty((H, W), dtype=np.uint8)
+    pneed = np.empty((H, W), dtype=np.uint8)
+    P = np.zeros((3, 3, W), dtype=np.float32)
+    keys = np.empty(H * W, dtype=np.int64)
+    c = max(cell, 1)
+    head = np.empty(((W + c - 1) // c) * ((H + c - 1) // c), dtype=np.int32)
+    nxt = np.empty(max(K, 1), dtype=np.int32)
+    ax = np.empty(max(K, 1), dtype=np.int64)
+    ay = np.empty(max(K, 1), dtype=np.int64)
+    starts = np.empty(W, dtype=np.int64)
+    stops = np.empty(W, dtype=np.int64)
+    ones = np.ones(W, dtype=np.uint8)
+    V = np.zeros((3, W), dtype=np.float32)
+    T = np.zeros((3, W), dtype=np.float32)
+    HM = np.zeros((3, W), dtype=np.float32)
+    flag = np.zeros(W, dtype=np.bool_)
+    resp[:] = 0  # pixels outside ``need`` are never computed (module docstring)
+    for s in range(s0, s1):
+        ms = mask[s] if has_mask else mask[0]
+        _stream(img[s], ms, has_mask, mc[s], quality, min_dist, c, r2i, out_pts[s], out_valid[s], resp, need,
+                pneed, P, keys, head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag)
