@@ -87,6 +87,11 @@ class Strategy:
     #: against cv2's 1.86 and the tensor LK's ~24 ms; count_step.py: 2 ops for the pyramid and the LK
     #: of a capturable step instead of ~2,900. A call or a tracker overrides it (``lk_backend=``)
     lk_backend: str = "tensor"
+    #: goodFeaturesToTrack of 8-bit frames (min eigenvalue, block 3): ``"fused"``, one custom op
+    #: (``fused/corners_op.py``: numba on the CPU, Triton + the capturable selection on CUDA; the
+    #: tensor path's bits, response only where the mask matters), or ``"tensor"`` (``corners/``).
+    #: bench_corners.py: see benchmarks/results/corners.json. A tracker overrides it (``corner_backend=``)
+    corner_backend: str = "tensor"
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -154,6 +159,7 @@ CPU = Strategy(
     pyramid_conv=False,
     clahe_block_keys=False,
     lk_backend="fused",
+    corner_backend="fused",
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -178,7 +184,7 @@ ONE_PASS = Strategy(
 )
 
 #: CUDA: one pass, and the fused kernels (Triton) for the pyramid and the LK
-CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused")
+CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", corner_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)

@@ -26,7 +26,7 @@ import torch.utils._pytree as pytree
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
-from ..fused import resolve_backend
+from ..fused import resolve_backend, resolve_corner_backend
 from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
@@ -234,6 +234,9 @@ class FeatureTracker:
             and positions bit-identical to OpenCV's ``calcOpticalFlowPyrLK``), ``"fused"`` (an error
             where they cannot run) or ``"tensor"`` (the tensor kernels). Resolved once here
             (``self.lk_backend``); checkpoints record it (``state_dict``). ``docs/kernels.md``.
+        corner_backend: goodFeaturesToTrack's kernels, as ``lk_backend``: None / ``"auto"``
+            (default: the fused op on the CPU and CUDA), ``"fused"`` or ``"tensor"``; the same
+            corners either way (``self.corner_backend``; ``docs/kernels.md``, "Detection").
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
@@ -262,6 +265,7 @@ class FeatureTracker:
         differentiable: bool = False,
         grad_mode: str = "implicit",
         lk_backend: Optional[str] = None,
+        corner_backend: Optional[str] = None,
     ):
         configs = stream_configs(config, num_streams)  # B configs; one given is every stream's
         for c in configs:
@@ -278,9 +282,11 @@ class FeatureTracker:
         masks = self._stream_masks(fisheye_mask)
         #: the pyramid's and the LK's kernels, ``"fused"`` or ``"tensor"`` (resolved for this device)
         self.lk_backend = resolve_backend(lk_backend, self.device)
+        #: goodFeaturesToTrack's kernels, ``"fused"`` or ``"tensor"`` (resolved; the same corners)
+        self.corner_backend = resolve_corner_backend(corner_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
                        lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
-                       lk_backend=self.lk_backend)
+                       lk_backend=self.lk_backend, corner_backend=self.corner_backend)
         built: Dict[Tuple[int, int], TrackerParams] = {}
         for b, c in enumerate(configs):
             if (id(c), id(masks[b])) not in built:
@@ -297,7 +303,8 @@ class FeatureTracker:
             # per-stream configs: one homogeneous tracker per group of equal configs (tracker.streams)
             kwargs = dict(device=self.device, mode=mode, dtype=dtype, seed=seed, capturable=self.capturable,
                           lk_iter_budget=lk_iter_budget, lk_tail_share=lk_tail_share,
-                          differentiable=self.differentiable, grad_mode=grad_mode, lk_backend=self.lk_backend)
+                          differentiable=self.differentiable, grad_mode=grad_mode, lk_backend=self.lk_backend,
+                          corner_backend=self.corner_backend)
             self._groups = tuple(groups)
             self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
                                                  **kwargs) for g in groups)

@@ -84,6 +84,9 @@ class TrackerParams:
     differentiable: bool = False
     lk_grad_mode: str = "implicit"
     lk_backend: str = "tensor"
+    #: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``): ``"fused"`` (one
+    #: op, the tensor path's corners bit for bit) or ``"tensor"``
+    corner_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream
