@@ -104,7 +104,8 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     t0 = time.time()
     out = _run(_PTX_SCRIPT, interpret=False)
     report = json.loads(out.strip().splitlines()[-1])
-    assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down"}, sorted(report)
+    assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "corners_response",
+                           "corners_candidates"}, sorted(report)
     for name, r in report.items():
         assert r["fma"] == [], (name, r)
         assert r["approx"] == 0 and r["div_full"] == 0 and r["ftz"] == 0, (name, r)

@@ -40,6 +40,14 @@ def _corners():
                                                                 capturable=cap)
 
 
+def _corners_fused():
+    from torch_frontend.corners import _good_features_impl
+
+    img, mc = _images(), torch.tensor([6, 3])
+    return _good_features_impl, lambda cap: _good_features_impl(img, mc, 0.01, 3.0, None, False, 3, 0.04, 6,
+                                                                capturable=cap, backend="fused")
+
+
 def _masks():
     from torch_frontend.masks import _distance_mask_impl
 
@@ -81,6 +89,7 @@ def _ransac():
 KERNELS = {
     "equalize": ("torch_frontend.equalize", _clahe),
     "corners": ("torch_frontend.corners", _corners),
+    "corners_fused": ("torch_frontend.corners", _corners_fused),  # the same door, the fused op behind it
     "masks": ("torch_frontend.masks", _masks),
     "lk": ("torch_frontend.lk", _lk),
     "ransac": ("torch_frontend.ransac", _ransac),
@@ -99,7 +108,8 @@ def test_every_kernel_is_listed():
     kernels = dict(LAYERS)["kernels"]
     # _tuning: strategies; pyramid: one form on both paths; fused: the custom ops behind the pyramid and
     # the LK (their doors are those kernels', tests/test_fused.py)
-    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == sorted(KERNELS)
+    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == sorted(
+        k for k in KERNELS if not k.endswith("_fused"))
 
 
 @pytest.mark.parametrize("kernel", list(KERNELS))

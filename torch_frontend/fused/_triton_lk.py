@@ -583,3 +583,9 @@ def _compile_all(target, out: Dict[str, str]) -> None:
                         constexprs={"BLOCK": _triton_pyramid._BLOCK})
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_pyramid._NUM_WARPS}).asm["ptx"]
+    from . import _triton_corners  # detection: the response and the candidates' keys
+
+    for name, kern in _triton_corners.KERNELS.items():
+        src = ASTSource(fn=kern, signature=_triton_corners.SIGNATURES[name], constexprs=_triton_corners.CONSTEXPRS[name])
+        out[name] = triton.compile(src, target=target, options={
+            **_COMPILE_OPTIONS, "num_warps": _triton_corners.NUM_WARPS}).asm["ptx"]
