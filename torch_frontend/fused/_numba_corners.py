@@ -59,25 +59,19 @@ def _refl(i, n):
 
 
 @njit(cache=True, nogil=True)
-def _dilate_rows(src, dst, H, W):
-    """``dst = dilate3x3(src != 0)`` clipped to the image, uint8 0/1 (``dst`` distinct from ``src``)."""
+def _dilate_rows(src, dst, H, W, tmp):
+    """``dst = dilate3x3(src != 0)`` clipped to the image, uint8 (non-zero = set; ``dst`` distinct from
+    ``src``; ``tmp`` a row of scratch). Slices indexed from 0, so the loops vectorise."""
     for y in range(H):
+        a, b, c = src[max(y - 1, 0)], src[y], src[min(y + 1, H - 1)]
+        for x in range(W):
+            tmp[x] = a[x] | b[x] | c[x]
         r = dst[y]
-        y0, y1 = max(y - 1, 0), min(y + 2, H)
-        for x in range(W):
-            r[x] = 0
-        for yy in range(y0, y1):
-            s = src[yy]
-            for x in range(W):
-                if s[x] != 0:
-                    r[x] = 1
-        # horizontal: a running "any of x - 1, x, x + 1" in place
-        prev = 0
-        for x in range(W):
-            cur = r[x]
-            nxt = r[x + 1] if x + 1 < W else 0
-            r[x] = 1 if (prev | cur | nxt) else 0
-            prev = cur
+        r[0] = tmp[0] | tmp[1]
+        r[W - 1] = tmp[W - 2] | tmp[W - 1]
+        t0, t1, t2, o = tmp[0:W - 2], tmp[1:W - 1], tmp[2:W], r[1:W - 1]
+        for i in range(W - 2):
+            o[i] = t0[i] | t1[i] | t2[i]
 
 
 @njit(cache=True, nogil=True)
@@ -178,62 +172,87 @@ def _row_max(v, W, mx):
 
 
 @njit(cache=True, nogil=True)
-def _t_row(r, thr, W, t, hm):
-    """``t = r if r > thr else 0`` and its horizontal 3-maximum ``hm`` (columns 1 .. W - 2)."""
+def _t_row(r, thr, x0, x1, W, t, hm):
+    """On columns ``[x0, x1)``: ``t = r if r > thr else 0``, and its horizontal 3-maximum ``hm`` on the
+    interior columns of the segment (at its ends ``hm`` reads ``t`` one column out, which may be stale:
+    such a column is one no candidate reads, see :func:`_stream`)."""
     zero = np.float32(0.0)
-    for x in range(W):
-        u = r[x]
-        t[x] = u if u > thr else zero
-    tl, tm, tr, h = t[0:W - 2], t[1:W - 1], t[2:W], hm[1:W - 1]
-    for i in range(W - 2):
-        a = tl[i]
-        b = tm[i]
-        c = tr[i]
-        u = a if a > b else b
-        h[i] = u if u > c else c
+    n = x1 - x0
+    rs, ts = r[x0:x1], t[x0:x1]
+    for i in range(n):
+        u = rs[i]
+        ts[i] = u if u > thr else zero
+    lo = max(x0, 1)
+    hi = min(x1, W - 1)
+    if hi > lo:
+        tl, tm, tr, h = t[lo - 1:hi - 1], t[lo:hi], t[lo + 1:hi + 1], hm[lo:hi]
+        for i in range(hi - lo):
+            a = tl[i]
+            b = tm[i]
+            c = tr[i]
+            u = a if a > b else b
+            h[i] = u if u > c else c
 
 
 @njit(cache=True, nogil=True)
-def _cand_row(t1, h0, h1, h2, W, flag):
-    """``flag[x] = t1[x] != 0 and t1[x] == max(h0, h1, h2)[x]`` for columns 1 .. W - 2 (h1[x] >= t1[x])."""
+def _cand_row(t1, h0, h1, h2, x0, x1, flag):
+    """``flag[x] = t1[x] != 0 and t1[x] == max(h0, h1, h2)[x]`` on ``[x0, x1)`` (h1[x] >= t1[x])."""
     zero = np.float32(0.0)
-    for x in range(1, W - 1):
-        v = t1[x]
-        flag[x] = (v != zero) & (v >= h0[x]) & (v >= h1[x]) & (v >= h2[x])
+    n = x1 - x0
+    a, b, c, d, f = t1[x0:x1], h0[x0:x1], h1[x0:x1], h2[x0:x1], flag[x0:x1]
+    for i in range(n):
+        v = a[i]
+        f[i] = (v != zero) & (v >= b[i]) & (v >= c[i]) & (v >= d[i])
 
 
 @njit(cache=True, nogil=True)
-def _runs(flag, W, starts, stops):
-    """The runs of non-zero ``flag[:W]``: ``[starts[i], stops[i])``; returns their number."""
+def _runs(flag, W, starts, stops, tr):
+    """The runs of ``flag[:W]`` (values 0 / 1): ``[starts[i], stops[i])``; returns their number.
+    ``tr``: uint8 scratch of ``8 * ceil((W + 1) / 8)`` bytes whose tail past ``W`` is 0. The
+    transitions ``flag[x] ^ flag[x - 1]`` are written in one vectorised pass, then read 8 at a time
+    (a run edge is rare: most words are 0)."""
+    tr[0] = flag[0]
+    a, b, o = flag[0:W - 1], flag[1:W], tr[1:W]
+    for i in range(W - 1):
+        o[i] = a[i] ^ b[i]
+    tr[W] = flag[W - 1]  # a run open at the last column closes at W
+    words = tr.view(np.uint64)
     n = 0
-    x = 0
-    while x < W:
-        if flag[x] == 0:
-            x += 1
+    k = 0
+    for w in range(words.shape[0]):
+        if words[w] == 0:
             continue
-        starts[n] = x
-        while x < W and flag[x] != 0:
-            x += 1
-        stops[n] = x
-        n += 1
+        for x in range(8 * w, 8 * w + 8):
+            if tr[x] != 0:
+                if k == 0:
+                    starts[n] = x
+                    k = 1
+                else:
+                    stops[n] = x
+                    n += 1
+                    k = 0
     return n
 
 
 @njit(cache=True, nogil=True)
 def _stream(img, m, has_mask, mc, quality, min_dist, cell, r2i, out_pts, out_valid, resp, need, pneed, P, keys,
-            head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag):
-    """One stream (module docstring); scratch passed in."""
+            head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag, rs, re, roff, tmp, tr):
+    """One stream (module docstring); scratch passed in. With a mask, every pass runs on the runs of
+    ``need`` (responses, their maximum over the mask, the thresholded rows and the candidate test) or
+    of ``pneed`` (products); without one, on whole rows."""
     H, W = img.shape
     K = out_pts.shape[0]
     n_max = min(mc, K)
     if n_max <= 0:
         return
     if has_mask:
-        _dilate_rows(m, need, H, W)
-        _dilate_rows(need, pneed, H, W)
-    # responses: product rows j ring-buffered in P[j % 3], computed on pneed's runs of row j
+        _dilate_rows(m, need, H, W, tmp)
+        _dilate_rows(need, pneed, H, W, tmp)
+    # responses: product rows j ring-buffered in P[j % 3], computed on pneed's runs of row j; the runs
+    # of need kept per row (rs, re from roff[y]) for the candidate pass
     mx = np.float32(-np.inf)
     done = -1  # product rows < done + 1 are computed
+    nrun = 0
     for y in range(H):
         last = min(y + 1, H - 1)
         while done < last:
@@ -241,49 +260,65 @@ def _stream(img, m, has_mask, mc, quality, min_dist, cell, r2i, out_pts, out_val
             a, b, c = img[_refl(j - 1, H)], img[j], img[_refl(j + 1, H)]
             q = j % 3
             if has_mask:
-                nr = _runs(pneed[j], W, starts, stops)
+                nr = _runs(pneed[j], W, starts, stops, tr)
                 for i in range(nr):
                     _products(a, b, c, starts[i], stops[i], W, P[q, 0], P[q, 1], P[q, 2])
             else:
                 _products(a, b, c, 0, W, W, P[q, 0], P[q, 1], P[q, 2])
             done = j
         r0, r1, r2 = _refl(y - 1, H) % 3, y % 3, _refl(y + 1, H) % 3
+        roff[y] = nrun
         if has_mask:
-            nr = _runs(need[y], W, starts, stops)
+            nr = _runs(need[y], W, starts, stops, tr)
             for i in range(nr):
                 _response_row(P, r0, r1, r2, starts[i], stops[i], W, resp[y], V)
                 mx = _masked_max(resp[y], m[y], starts[i], stops[i], mx)
+                rs[nrun] = starts[i]
+                re[nrun] = stops[i]
+                nrun += 1
         else:
             _response_row(P, r0, r1, r2, 0, W, W, resp[y], V)
             mx = _row_max(resp[y], W, mx)
+            rs[nrun] = 0
+            re[nrun] = W
+            nrun += 1
+    roff[H] = nrun
     if not np.isfinite(mx):
         mx = np.float32(0.0)
     thr = np.float32(np.float64(mx) * quality)
     # candidates (3x3 maximum of the thresholded response, interior, mask) -> keys that sort ascending
     # in OpenCV's order: response descending (float bits made order-preserving), raster descending.
-    # Outside ``need`` the response rows hold stale values: they only reach the flags of pixels
-    # outside the mask, which are dropped.
+    # Only need's runs are visited: a candidate (y, x) is a mask pixel, so its 3x3 neighbours and
+    # theirs in the row (the horizontal maximum) are need pixels of their rows; values outside need
+    # are stale and reach no candidate's test.
     bits = resp.view(np.int32)
     ib = 1
     while (1 << ib) < H * W:
         ib += 1
     top = (1 << ib) - 1
     n = 0
-    for j in range(0, 2):
-        _t_row(resp[j], thr, W, T[j % 3], HM[j % 3])
+    for j in range(0, min(2, H)):
+        for k in range(roff[j], roff[j + 1]):
+            _t_row(resp[j], thr, rs[k], re[k], W, T[j % 3], HM[j % 3])
     for y in range(1, H - 1):
-        _t_row(resp[y + 1], thr, W, T[(y + 1) % 3], HM[(y + 1) % 3])
-        _cand_row(T[y % 3], HM[(y - 1) % 3], HM[y % 3], HM[(y + 1) % 3], W, flag)
+        j = y + 1
+        for k in range(roff[j], roff[j + 1]):
+            _t_row(resp[j], thr, rs[k], re[k], W, T[j % 3], HM[j % 3])
         mrow = m[y] if has_mask else ones
         ba = bits[y]
-        for x in range(1, W - 1):
-            if not flag[x] or mrow[x] == 0:
+        for k in range(roff[y], roff[y + 1]):
+            x0, x1 = max(rs[k], 1), min(re[k], W - 1)
+            if x1 <= x0:
                 continue
-            bv = np.int64(ba[x])
-            if bv < 0:
-                bv ^= 0x7FFFFFFF
-            keys[n] = ((np.int64(0x7FFFFFFF) - bv) << ib) + (top - (y * W + x))
-            n += 1
+            _cand_row(T[y % 3], HM[(y - 1) % 3], HM[y % 3], HM[(y + 1) % 3], x0, x1, flag)
+            for x in range(x0, x1):
+                if not flag[x] or mrow[x] == 0:
+                    continue
+                bv = np.int64(ba[x])
+                if bv < 0:
+                    bv ^= 0x7FFFFFFF
+                keys[n] = ((np.int64(0x7FFFFFFF) - bv) << ib) + (top - (y * W + x))
+                n += 1
     if n == 0:
         return
     srt = np.sort(keys[:n])
@@ -358,8 +393,13 @@ def gftt_streams(img, mask, has_mask, mc, quality, min_dist, cell, r2i, out_pts,
     T = np.zeros((3, W), dtype=np.float32)
     HM = np.zeros((3, W), dtype=np.float32)
     flag = np.zeros(W, dtype=np.bool_)
+    rs = np.empty(H * (W // 2 + 1), dtype=np.int64)
+    re = np.empty(H * (W // 2 + 1), dtype=np.int64)
+    roff = np.empty(H + 1, dtype=np.int64)
+    tmp = np.empty(W, dtype=np.uint8)
+    tr = np.zeros(8 * ((W + 8) // 8), dtype=np.uint8)  # W + 1 transitions, a zero tail
     resp[:] = 0  # pixels outside ``need`` are never computed (module docstring)
     for s in range(s0, s1):
         ms = mask[s] if has_mask else mask[0]
         _stream(img[s], ms, has_mask, mc[s], quality, min_dist, c, r2i, out_pts[s], out_valid[s], resp, need,
-                pneed, P, keys, head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag)
+                pneed, P, keys, head, nxt, ax, ay, starts, stops, ones, V, T, HM, flag, rs, re, roff, tmp, tr)
