@@ -7,8 +7,14 @@ sample frames as B streams, as ``bench_pipeline.py``) and times them in alternat
 consecutive steps, so that both see the same machine load. Prints min and median ms per
 stream-frame per tree and the ratio of the minima.
 
+A same-tree A/B by tracker keywords: ``--ref same`` times this tree twice, the working-tree side
+with ``--kwargs`` and the reference side with ``--ref-kwargs`` (``key=value`` pairs given to
+``FeatureTracker``, e.g. ``--ref same --ref-kwargs corner_backend=tensor``: the fused detection
+against the tensor one).
+
 Usage:
     python benchmarks/ab_tracker.py --ref /tmp/ref/torch_frontend [--batches 1 16 64] [--windows 8]
+    python benchmarks/ab_tracker.py --ref same [--kwargs k=v ...] --ref-kwargs k=v ... [--batches 1 16]
 """
 
 from __future__ import annotations
@@ -49,7 +55,8 @@ def compare(B: int, windows: int, trees: dict) -> dict:
     stamps = [1403715273.0 + 0.05 * k for k in range(n)]
     trackers = {}
     for key, mod in trees.items():
-        tr = mod.FeatureTracker(mod.load_config(REPO / "configs" / "euroc.yaml"), num_streams=B)
+        mod, kwargs = mod if isinstance(mod, tuple) else (mod, {})
+        tr = mod.FeatureTracker(mod.load_config(REPO / "configs" / "euroc.yaml"), num_streams=B, **kwargs)
         for k in range(4):
             tr.track(batches[k], [stamps[k]] * B)
         trackers[key] = tr
@@ -63,9 +70,28 @@ def compare(B: int, windows: int, trees: dict) -> dict:
     return {key: sorted(v) for key, v in times.items()}
 
 
+def _kwargs(pairs) -> dict:
+    """``["k=v", ...]`` -> keywords (``v`` as a Python literal where it reads as one, else a string)."""
+    import ast
+
+    out = {}
+    for p in pairs:
+        k, sep, v = p.partition("=")
+        if not sep:
+            raise SystemExit(f"--kwargs / --ref-kwargs: expected key=value, got {p!r}")
+        try:
+            out[k] = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            out[k] = v
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--ref", type=Path, required=True, help="the reference torch_frontend package directory")
+    ap.add_argument("--ref", type=Path, required=True,
+                    help="the reference torch_frontend package directory, or 'same' (this tree, --ref-kwargs)")
+    ap.add_argument("--kwargs", nargs="*", default=[], help="key=value FeatureTracker keywords of the working tree")
+    ap.add_argument("--ref-kwargs", nargs="*", default=[], help="key=value FeatureTracker keywords of the reference")
     ap.add_argument("--batches", type=int, nargs="*", default=[1, 16, 64])
     ap.add_argument("--windows", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
@@ -73,7 +99,9 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    trees = {"working tree": _load("tf_ab_new", REPO / "torch_frontend"), "reference": _load("tf_ab_ref", args.ref)}
+    new = _load("tf_ab_new", REPO / "torch_frontend")
+    ref = new if str(args.ref) == "same" else _load("tf_ab_ref", args.ref)
+    trees = {"working tree": (new, _kwargs(args.kwargs)), "reference": (ref, _kwargs(args.ref_kwargs))}
     print("| B | working tree min / median ms per stream-frame | reference min / median | ratio of minima |")
     print("|---|---|---|---|")
     for B in args.batches:
