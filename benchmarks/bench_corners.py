@@ -7,7 +7,9 @@ Cases: B = 1 and 16 streams (the sample's frames reused cyclically), ``max_corne
 * ``unmasked``: a first frame (no mask, 150 corners);
 * ``masked``: the steady state: setMask's mask (255 with filled discs of radius 30 around 110 tracked
   features, here cv2's strongest corners of the frame jittered by a few pixels) and
-  ``max_corners = 150 - 110 = 40``.
+  ``max_corners = 150 - 110 = 40``;
+* ``fisheye``: a first frame under a fisheye-style mask (a disc of radius 260 px at the centre: 43 %
+  of the frame masked, in wide margins), 150 corners.
 
 OpenCV has no batch: it runs the B frames one after the other. Every library on ``--threads`` threads
 (default 1); the three are timed alternately in one process (the same machine load for all). Prints
@@ -74,13 +76,16 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     masks = [_setmask(f, rng) for f in frames]
     rows = []
-    for case in ("unmasked", "masked"):
+    fish = np.zeros(frames[0].shape, np.uint8)
+    cv2.circle(fish, (frames[0].shape[1] // 2, frames[0].shape[0] // 2), 260, 255, -1)
+    for case in ("unmasked", "masked", "fisheye"):
         for B in (1, 16):
             idx = [b % len(frames) for b in range(B)]
             x = torch.from_numpy(np.stack([frames[i] for i in idx]))[:, None]
-            n = MAX_CNT if case == "unmasked" else MAX_CNT - TRACKED
+            n = MAX_CNT - TRACKED if case == "masked" else MAX_CNT
             mc = torch.full((B,), n)
-            m = None if case == "unmasked" else torch.from_numpy(np.stack([masks[i] for i in idx]) != 0)
+            cmask = {"unmasked": [None] * len(frames), "masked": masks, "fisheye": [fish] * len(frames)}[case]
+            m = None if case == "unmasked" else torch.from_numpy(np.stack([cmask[i] for i in idx]) != 0)
             # the outputs agree (the tests hold every corner; here a guard on what is timed)
             a = _good_features_impl(x, mc, QUALITY, float(MIN_DIST), m, False, 3, 0.04, None, backend="fused")
             b = _good_features_impl(x, mc, QUALITY, float(MIN_DIST), m, False, 3, 0.04, None, backend="tensor")
@@ -90,10 +95,9 @@ def main(argv=None):
                 return lambda: _good_features_impl(x, mc, QUALITY, float(MIN_DIST), m, False, 3, 0.04, None,
                                                    backend=be)
 
-            def cv(idx=idx, case=case, n=n):
+            def cv(idx=idx, cmask=cmask, n=n):
                 for i in idx:
-                    cv2.goodFeaturesToTrack(frames[i], n, QUALITY, MIN_DIST,
-                                            mask=None if case == "unmasked" else masks[i])
+                    cv2.goodFeaturesToTrack(frames[i], n, QUALITY, MIN_DIST, mask=cmask[i])
 
             (f_med, f_min), (t_med, t_min), (c_med, c_min) = _time3([run("fused"), run("tensor"), cv], args.repeat)
             row = {"case": case, "B": B, "max_corners": n, "fused_ms": round(f_med, 3), "fused_min_ms": round(f_min, 3),
@@ -116,7 +120,8 @@ def main(argv=None):
             "opencv_threads": cv2.getNumThreads(), "machine": platform.machine(), "size": [752, 480],
             "repeat": args.repeat,
             "note": "medians of alternating timings in one process (fused, tensor, OpenCV); OpenCV runs the B frames "
-                    "sequentially; 'masked': setMask's mask of 110 tracked features, 40 new corners; a shared, "
+                    "sequentially; 'masked': setMask's mask of 110 tracked features, 40 new corners; 'fisheye': a centred "
+                    "disc of radius 260 px, 150 corners; a shared, "
                     "busy machine: ratios within one run, not absolute times"}
     write_json_atomic(Path(args.out), {"meta": meta, "rows": rows})
     print(f"\nwrote {args.out}")

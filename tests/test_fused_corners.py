@@ -208,15 +208,16 @@ def test_tracker_fused_equals_tensor_detection(capturable):
 _INTERP = r"""
 import numpy as np, torch, cv2, sys
 sys.path.insert(0, {repo!r})
+import torch_frontend.corners  # registers the selection
 from torch_frontend.fused._triton_corners import good_features_cuda
-from torch_frontend.fused.corners_op import good_features_op
+from torch_frontend.fused.corners_op import _SELECTION, good_features_op
 img = cv2.imread({frame!r}, cv2.IMREAD_GRAYSCALE)
 x = torch.from_numpy(np.stack([img[100:100 + {h}, 200:200 + {w}], img[300:300 + {h}, 400:400 + {w}]])).contiguous()
 B, H, W = x.shape
 m = torch.ones(B, H, W, dtype=torch.bool); m[0, 5:15, 8:20] = False; m[1, :, :10] = False
 for mask, md, mc in {cases}:
     mcs = torch.tensor(mc)
-    a = good_features_cuda(x, mcs, m if mask else None, max(mc), 0.01, md)
+    a = good_features_cuda(x, mcs, m if mask else None, max(mc), 0.01, md, _SELECTION[0])
     b = good_features_op(x, mcs, m if mask else None, max(mc), 0.01, md)
     assert all(torch.equal(u, v) for u, v in zip(a, b)), (mask, md, mc, a, b)
     assert int(b[1].sum()) > 0

@@ -54,10 +54,25 @@ from .selection_capturable import (  # noqa: F401
     _pixel_table,
     _resolve_dense,
     _select_corners_capturable,
+    _select_from_keys,
     _stream_offsets,
 )
 
 __all__ = ["min_eigen_response", "harris_response", "good_features_to_track"]
+
+
+def _select_keys_gftt(keys, mc, min_distance, H, W, K):
+    """The fused op's CUDA selection: :func:`_select_from_keys` with :data:`GFTT_BUDGET`, float32 points."""
+    return _select_from_keys(keys, mc, min_distance, H, W, K, GFTT_BUDGET, torch.float32)
+
+
+def _register_selection() -> None:
+    from ..fused.corners_op import set_selection
+
+    set_selection(_select_keys_gftt)
+
+
+_register_selection()
 
 
 def min_eigen_response(img: torch.Tensor, block_size: int = 3) -> torch.Tensor:

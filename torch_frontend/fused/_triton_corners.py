@@ -181,11 +181,14 @@ def candidate_keys(img: torch.Tensor, mask, quality_level: float):
 
 
 def good_features_cuda(img: torch.Tensor, max_corners: torch.Tensor, mask, capacity: int, quality_level: float,
-                       min_distance: float):
+                       min_distance: float, select):
     """``torch_frontend::good_features`` on CUDA (CPU tensors under ``TRITON_INTERPRET=1``): the two
-    launches, then the capturable selection (:func:`corners.selection_capturable._select_from_keys`)."""
-    from ..corners.selection_capturable import GFTT_BUDGET, _select_from_keys
-
+    launches, then ``select(keys, max_corners, min_distance, H, W, K)``: the capturable selection
+    (``corners.selection_capturable._select_from_keys`` with ``GFTT_BUDGET``, which
+    ``torch_frontend.corners`` registers: ``corners_op.set_selection``)."""
+    if select is None:
+        raise RuntimeError("torch_frontend::good_features on CUDA: import torch_frontend.corners first (it "
+                           "registers the capturable selection the op runs after its kernels)")
     B, H, W = img.shape
     dev = img.device
     K = int(capacity)
@@ -193,5 +196,4 @@ def good_features_cuda(img: torch.Tensor, max_corners: torch.Tensor, mask, capac
         return (torch.zeros(B, max(K, 0), 2, dtype=torch.float32, device=dev),
                 torch.zeros(B, max(K, 0), dtype=torch.bool, device=dev), torch.zeros(B, dtype=torch.bool, device=dev))
     keys, _ = candidate_keys(img, mask, quality_level)
-    return _select_from_keys(keys, max_corners.clamp_min(0), float(min_distance), H, W, K, GFTT_BUDGET,
-                             torch.float32)
+    return select(keys, max_corners.clamp_min(0), float(min_distance), H, W, K)

@@ -23,6 +23,7 @@ reference (``corners.responses`` + ``corners.selection``) bit for bit.
 from __future__ import annotations
 
 import math
+import threading
 from typing import Optional, Tuple
 
 import numpy as np
@@ -39,8 +40,33 @@ torch.library.define(
     "(Tensor img, Tensor max_corners, Tensor? mask, int capacity, float quality_level, float min_distance) "
     "-> (Tensor, Tensor, Tensor)")
 
+#: the capturable selection from the candidates' keys, which the CUDA implementation runs after its
+#: kernels: ``corners.selection_capturable._select_from_keys``, registered by ``torch_frontend.corners``
+#: when it is imported (:func:`set_selection`). The kernel layer's ``fused`` imports nothing of
+#: ``corners`` (which calls the op): no import cycle.
+_SELECTION: list = [None]
+
+
+def set_selection(fn) -> None:
+    """Register the capturable selection the CUDA implementation runs (``torch_frontend.corners`` does)."""
+    _SELECTION[0] = fn
+
+
 _NO_MASK = np.zeros((1, 1, 1), dtype=np.uint8)  # the kernel's ``mask`` when none is given (not read)
 _NO_MASK.flags.writeable = False
+
+
+_SCRATCH = threading.local()  # per thread: (H, W) -> the CPU kernel's image-sized scratch
+
+
+def _scratch(H: int, W: int):
+    """This thread's scratch of :func:`._numba_corners.scratch` for ``H x W`` (kept for the last size)."""
+    from ._numba_corners import scratch
+
+    held = getattr(_SCRATCH, "held", None)
+    if held is None or held[0] != (H, W):
+        held = _SCRATCH.held = ((H, W), scratch(1, H, W))
+    return held[1]
 
 
 def cell_and_r2(min_distance: float) -> Tuple[int, int]:
@@ -89,7 +115,7 @@ def _gftt_cpu(img: Tensor, max_corners: Tensor, mask: Optional[Tensor], capacity
     q, md = float(quality_level), float(min_distance)
 
     def run(s0, s1):
-        gftt_streams(src, m, mask is not None, mc, q, md, cell, r2, o, v, s0, s1)
+        gftt_streams(src, m, mask is not None, mc, q, md, cell, r2, o, v, s0, s1, *_scratch(H, W))
 
     _run_groups(run, B)
     return pts, valid, overflow
@@ -108,7 +134,7 @@ def _gftt_cuda(img, max_corners, mask, capacity, quality_level, min_distance):
 
     _check(img, max_corners, mask, capacity, quality_level)
     return good_features_cuda(img.contiguous(), max_corners.to(torch.int64), None if mask is None else mask.contiguous(),
-                              capacity, float(quality_level), float(min_distance))
+                              capacity, float(quality_level), float(min_distance), _SELECTION[0])
 
 
 def fused_corners_applies(img: Tensor, use_harris: bool, block_size: int, quality_level: float) -> bool:
