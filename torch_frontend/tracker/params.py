@@ -62,6 +62,9 @@ class TrackerParams:
         lk_backend: the pyramid's and the LK's kernels, resolved (``fused.resolve_backend``):
             ``"fused"`` (one custom op each, OpenCV's bits; ``FeatureTracker``'s default on the CPU
             and CUDA) or ``"tensor"`` (the tensor kernels; the default of params built by hand).
+        corner_backend: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``):
+            ``"fused"`` (the ``good_features`` op; ``FeatureTracker``'s default on the CPU and CUDA)
+            or ``"tensor"`` (``corners/``; the default of params built by hand). The same corners.
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -84,8 +87,6 @@ class TrackerParams:
     differentiable: bool = False
     lk_grad_mode: str = "implicit"
     lk_backend: str = "tensor"
-    #: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``): ``"fused"`` (one
-    #: op, the tensor path's corners bit for bit) or ``"tensor"``
     corner_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
