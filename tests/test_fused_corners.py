@@ -243,3 +243,22 @@ def test_triton_equals_cpu_interpreted():
     """Larger crops, with and without a mask, distances 10, 3 and 0.5 (no test)."""
     _interpret(60, 90, [(False, 10.0, [30, 12]), (True, 10.0, [30, 12]), (True, 3.0, [40, 40]),
                         (False, 0.5, [25, 5])])
+
+
+def test_op_passes_opcheck_and_compiles_as_one_node():
+    """``torch.library.opcheck`` (schema, fake, autograd registration, AOT dispatch) with and without a
+    mask, and ``torch.compile(fullgraph=True)`` of a call: no graph break, the same bits."""
+    imgs = _frames("cam0", 2)
+    x = torch.from_numpy(np.stack(imgs))[:, 100:180, 200:320].contiguous()
+    m = torch.ones(x.shape, dtype=torch.bool)
+    m[:, 20:50, 30:70] = False
+    mc = torch.tensor([20, 7])
+    for mask in (None, m):
+        res = torch.library.opcheck(good_features_op, (x, mc, mask, 20, 0.01, 10.0))
+        assert all(v == "SUCCESS" for v in res.values()), res
+
+    def fn(x, mc, m):
+        return good_features_op(x, mc, m, 20, 0.01, 10.0)
+
+    got = torch.compile(fn, backend="eager", fullgraph=True)(x, mc, m)
+    assert all(torch.equal(a, b) for a, b in zip(got, fn(x, mc, m)))
