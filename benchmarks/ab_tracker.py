@@ -7,21 +7,27 @@ sample frames as B streams, as ``bench_pipeline.py``) and times them in alternat
 consecutive steps, so that both see the same machine load. Prints min and median ms per
 stream-frame per tree and the ratio of the minima.
 
-A same-tree A/B by tracker keywords: ``--ref same`` times this tree twice, the working-tree side
-with ``--kwargs`` and the reference side with ``--ref-kwargs`` (``key=value`` pairs given to
-``FeatureTracker``, e.g. ``--ref same --ref-kwargs corner_backend=tensor``: the fused detection
-against the tensor one).
+Two trees that both define the fused kernels' custom ops (``torch_frontend::lk``, ...) cannot both
+register them in one process: the reference tree is loaded from a copy (under
+``~/.cache/torch_frontend_ab``) whose op namespace is renamed ``tf_ab_ref::``. ``--ref same`` times the
+working tree against itself, each side with its own ``FeatureTracker`` keyword arguments
+(``--new-kwargs`` / ``--ref-kwargs``, JSON): an A/B of two settings (e.g. the fused and the tensor
+kernels of one stage) in one tree.
 
 Usage:
     python benchmarks/ab_tracker.py --ref /tmp/ref/torch_frontend [--batches 1 16 64] [--windows 8]
-    python benchmarks/ab_tracker.py --ref same [--kwargs k=v ...] --ref-kwargs k=v ... [--batches 1 16]
+    python benchmarks/ab_tracker.py --ref same --ref-kwargs '{"lk_backend": "tensor"}'
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib
 import importlib.util
+import json
+import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -41,7 +47,44 @@ def _load(name: str, path: Path):
     return mod
 
 
-def compare(B: int, windows: int, trees: dict) -> dict:
+#: the op namespace of the working tree, and the one the reference copy's ops are renamed to
+_OPS_NAMESPACE = "torch_frontend"
+_REF_NAMESPACE = "tf_ab_ref"
+
+
+def _renamed_ops_copy(path: Path) -> Path:
+    """A copy of the package at ``path`` whose custom ops live in ``tf_ab_ref::`` (the ``.py`` sources
+    with ``torch_frontend::`` and ``torch.ops.torch_frontend`` renamed), cached by content hash."""
+    sources = sorted(p for p in path.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+    digest = hashlib.sha256()
+    for p in sources:
+        digest.update(str(p.relative_to(path)).encode())
+        digest.update(p.read_bytes())
+    root = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "torch_frontend_ab"
+    dest = root / digest.hexdigest()[:16] / "torch_frontend"
+    if dest.is_dir():
+        return dest
+    tmp = dest.parent.with_name(dest.parent.name + f".tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for p in sources:
+        out = tmp / "torch_frontend" / p.relative_to(path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if p.suffix == ".py":
+            text = p.read_text()
+            text = text.replace(f"{_OPS_NAMESPACE}::", f"{_REF_NAMESPACE}::")
+            text = text.replace(f"torch.ops.{_OPS_NAMESPACE}", f"torch.ops.{_REF_NAMESPACE}")
+            out.write_text(text)
+        else:
+            shutil.copy2(p, out)
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.rename(tmp, dest.parent)
+    except OSError:  # another run made it first
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dest
+
+
+def compare(B: int, windows: int, trees: dict, kwargs: dict) -> dict:
     import numpy as np
     import torch
 
@@ -55,8 +98,7 @@ def compare(B: int, windows: int, trees: dict) -> dict:
     stamps = [1403715273.0 + 0.05 * k for k in range(n)]
     trackers = {}
     for key, mod in trees.items():
-        mod, kwargs = mod if isinstance(mod, tuple) else (mod, {})
-        tr = mod.FeatureTracker(mod.load_config(REPO / "configs" / "euroc.yaml"), num_streams=B, **kwargs)
+        tr = mod.FeatureTracker(mod.load_config(REPO / "configs" / "euroc.yaml"), num_streams=B, **kwargs[key])
         for k in range(4):
             tr.track(batches[k], [stamps[k]] * B)
         trackers[key] = tr
@@ -70,28 +112,14 @@ def compare(B: int, windows: int, trees: dict) -> dict:
     return {key: sorted(v) for key, v in times.items()}
 
 
-def _kwargs(pairs) -> dict:
-    """``["k=v", ...]`` -> keywords (``v`` as a Python literal where it reads as one, else a string)."""
-    import ast
-
-    out = {}
-    for p in pairs:
-        k, sep, v = p.partition("=")
-        if not sep:
-            raise SystemExit(f"--kwargs / --ref-kwargs: expected key=value, got {p!r}")
-        try:
-            out[k] = ast.literal_eval(v)
-        except (ValueError, SyntaxError):
-            out[k] = v
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--ref", type=Path, required=True,
-                    help="the reference torch_frontend package directory, or 'same' (this tree, --ref-kwargs)")
-    ap.add_argument("--kwargs", nargs="*", default=[], help="key=value FeatureTracker keywords of the working tree")
-    ap.add_argument("--ref-kwargs", nargs="*", default=[], help="key=value FeatureTracker keywords of the reference")
+    ap.add_argument("--ref", required=True,
+                    help="the reference torch_frontend package directory, or 'same' (the working tree again)")
+    ap.add_argument("--new-kwargs", type=json.loads, default={},
+                    help="FeatureTracker keyword arguments of the working tree's tracker (JSON)")
+    ap.add_argument("--ref-kwargs", type=json.loads, default={},
+                    help="FeatureTracker keyword arguments of the reference's tracker (JSON)")
     ap.add_argument("--batches", type=int, nargs="*", default=[1, 16, 64])
     ap.add_argument("--windows", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
@@ -100,12 +128,20 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     new = _load("tf_ab_new", REPO / "torch_frontend")
-    ref = new if str(args.ref) == "same" else _load("tf_ab_ref", args.ref)
-    trees = {"working tree": (new, _kwargs(args.kwargs)), "reference": (ref, _kwargs(args.ref_kwargs))}
+    if args.ref == "same":
+        ref = new
+    else:
+        ref_path = Path(args.ref).resolve()
+        if not (ref_path / "__init__.py").is_file():
+            raise SystemExit(f"--ref: {ref_path} is not a torch_frontend package directory (no __init__.py)")
+        ref = _load("tf_ab_ref", _renamed_ops_copy(ref_path))
+    trees = {"working tree": new, "reference": ref}
+    kwargs = {"working tree": args.new_kwargs, "reference": args.ref_kwargs}
+    print(f"working tree kwargs {args.new_kwargs}; reference {args.ref} kwargs {args.ref_kwargs}")
     print("| B | working tree min / median ms per stream-frame | reference min / median | ratio of minima |")
     print("|---|---|---|---|")
     for B in args.batches:
-        t = compare(B, args.windows, trees)
+        t = compare(B, args.windows, trees, kwargs)
         new, ref = t["working tree"], t["reference"]
         print(f"| {B} | {new[0]:.1f} / {new[len(new) // 2]:.1f} | {ref[0]:.1f} / {ref[len(ref) // 2]:.1f} | "
               f"{new[0] / ref[0]:.2f} |", flush=True)

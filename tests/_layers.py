@@ -19,8 +19,9 @@ LAYERS: List[Tuple[str, Tuple[str, ...]]] = [
     ("readers and maths", ("opencv_yaml", "_checks", "geometry", "polynomial")),
     # camodocal camera models; trajectory files, alignment and ATE
     ("models", ("camera", "trajectory")),
-    # VINS config files and sensor.yaml (torch-free; builds cameras on demand)
-    ("config", ("config",)),
+    # VINS config files and sensor.yaml (torch-free; builds cameras on demand); VINS configs from
+    # Kalibr / camera_info calibration files
+    ("config", ("config", "calibration")),
     # image-sequence readers and the MultiStream batcher
     ("datasets", ("io",)),
     # the image kernels of the front end, and the one room of their CPU tuning

@@ -6,6 +6,7 @@ read ``../shared/data`` (beside the repo in CI) and skip, saying so, when it is 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -14,7 +15,10 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini"
 TEST_DATA = REPO / "tests" / "data"
-SHARED_DATA = REPO.parent / "shared" / "data"
+# ../shared (real data and tools beside the repo; TORCH_FRONTEND_SHARED=DIR: elsewhere, or a missing
+# folder to run as a fresh clone does)
+SHARED = Path(os.environ.get("TORCH_FRONTEND_SHARED") or REPO.parent / "shared")
+SHARED_DATA = SHARED / "data"
 
 # One thread for torch and OpenCV in the tests: the suite runs on 2-core machines (CI), where the
 # kernels' many small ops slow down by orders of magnitude when threads compete for the cores.
@@ -34,7 +38,8 @@ def shared_data_or_skip(*parts: str) -> Path:
     """Path under ``../shared/data``; skips the test with a clear reason when it is absent."""
     p = SHARED_DATA.joinpath(*parts)
     if not p.exists():
-        pytest.skip(f"../shared/data not found beside the repo (looked for {p}); this test needs it")
+        pytest.skip(f"../shared/data not found beside the repo (looked for {p}; TORCH_FRONTEND_SHARED=DIR points "
+                    f"elsewhere); this test needs it")
     return p
 
 
@@ -60,6 +65,30 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def ros_skip(why: str):
+    """Skip a test that needs ROS 1, saying what is missing; a failure instead under
+    ``TORCH_FRONTEND_REQUIRE_ROS=1`` (``make test-all``, CI: ``.ci/run`` installs ROS 1)."""
+    import os
+
+    if os.environ.get("TORCH_FRONTEND_REQUIRE_ROS") == "1":
+        pytest.fail(f"ROS 1 required (TORCH_FRONTEND_REQUIRE_ROS=1) but missing: {why}")
+    pytest.skip(f"ROS 1 missing: {why}")
+
+
+@pytest.fixture(scope="module")
+def ros_master():
+    """A private ``roscore`` on a free port for a module (``tests._ros.roscore``): yields the
+    environment for the node and the driver (``ROS_MASTER_URI``, ``ROS_HOSTNAME=127.0.0.1``, a
+    temporary ``ROS_HOME``), or skips saying what is missing (:func:`ros_skip`)."""
+    from . import _ros
+
+    why = _ros.ros_missing()
+    if why is not None:
+        ros_skip(why)
+    with _ros.roscore() as env:
+        yield env
 
 
 @pytest.fixture(params=DEVICES)

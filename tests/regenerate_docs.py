@@ -17,7 +17,8 @@ from .conftest import REPO
 
 CLI_DOC = REPO / "docs" / "cli.md"
 OPTIONS = "## Options\n"
-COMMANDS = ((), ("track",), ("demo",), ("loop",), ("vocabulary",), ("vocabulary", "train"), ("compare",))
+COMMANDS = ((), ("track",), ("demo",), ("loop",), ("vocabulary",), ("vocabulary", "train"), ("compare",), ("ros",),
+            ("config",))
 HELP_COLUMNS = "100"
 
 

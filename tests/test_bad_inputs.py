@@ -339,7 +339,7 @@ API_CASES = [
          ("'99.png'", "not a time", "nanoseconds"), fixed=True),
     Case("folder_ten_digit_ns_names", _ten_digit_ns_names, None, fixed=True),
     Case("folder_frame_numbers_need_fps", lambda c: ImageFolderSequence(_folder(c, ["000001.png", "000002.png"])),
-         DataError, ("000001.png", "give a frame rate (fps)")),
+         DataError, ("000001.png", "give a frame rate (`fps`)")),
     Case("folder_unreadable", lambda c: ImageFolderSequence(_unreadable_folder(c)), DataError,
          ("cannot read folder", "Permission denied"), fixed=True),
     Case("cli_os_error_reading_is_not_writing", _cli_os_error_names_reading, None, fixed=True),

@@ -1,4 +1,5 @@
-"""CLAHE vs cv2.createCLAHE(3.0, (8, 8)).apply on real EuRoC frames (batched, CPU/CUDA)."""
+"""The tensor CLAHE vs cv2.createCLAHE(3.0, (8, 8)).apply on real EuRoC frames (batched, CPU/CUDA).
+(The fused op ``torch_frontend::clahe``: ``tests/test_fused_clahe.py``.)"""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ def _frames(n=3):
     return [load_gray(p) for p in sample_frames("cam0")[:: max(1, 24 // n)][:n]]
 
 
-def _compare(batch_np, device, clip=3.0, grid=(8, 8)):
-    out = clahe(torch.from_numpy(batch_np)[:, None].to(device), clip, grid)
+def _compare(batch_np, device, clip=3.0, grid=(8, 8), backend="tensor"):
+    out = clahe(torch.from_numpy(batch_np)[:, None].to(device), clip, grid, backend=backend)
     assert out.dtype == torch.uint8 and out.shape == (len(batch_np), 1) + batch_np.shape[1:]
     out = out[:, 0].cpu().numpy().astype(np.int32)
     ref = np.stack([cv2.createCLAHE(clip, grid).apply(np.ascontiguousarray(b)) for b in batch_np]).astype(np.int32)
@@ -48,10 +49,11 @@ def test_clahe_other_parameters(clip, grid):
 def test_clahe_layouts_and_float():
     f = _frames(2)
     b = torch.from_numpy(np.stack([x[:64, :96] for x in f]))
-    out3 = clahe(b)  # (B, H, W) in -> (B, H, W) out
+    out3 = clahe(b, backend="tensor")  # (B, H, W) in -> (B, H, W) out
     assert out3.shape == (2, 64, 96)
-    outf = clahe(b[:, None].double())  # float grey levels are rounded to 8-bit first
+    outf = clahe(b[:, None].double(), backend="tensor")  # float grey levels are rounded to 8-bit first
     assert torch.equal(outf[:, 0], out3)
+    assert torch.equal(clahe(b[:, None].double())[:, 0], out3)  # the default (fused on the CPU) too
 
 
 def test_clahe_errors():
@@ -71,12 +73,12 @@ def test_clahe_cpu_row_blocks_equal_one_block(monkeypatch):
     from torch_frontend import _tuning
 
     b = torch.from_numpy(np.stack([x[:120, :200] for x in _frames(2)]))[:, None]
-    ref = clahe(b)
+    ref = clahe(b, backend="tensor")
     monkeypatch.setitem(_tuning.STRATEGIES, "cpu", _tuning.ONE_PASS)  # no blocking, as on other devices
-    assert torch.equal(clahe(b), ref)
+    assert torch.equal(clahe(b, backend="tensor"), ref)
     blocks = dataclasses.replace(_tuning.CPU, clahe_block_pixels=1000)  # 5 rows per block, crossing streams
     monkeypatch.setitem(_tuning.STRATEGIES, "cpu", blocks)
-    assert torch.equal(clahe(b), ref)
+    assert torch.equal(clahe(b, backend="tensor"), ref)
     blocks = dataclasses.replace(_tuning.CPU, clahe_block_pixels=1)  # one row per block; padded (49x61) size
     monkeypatch.setitem(_tuning.STRATEGIES, "cpu", blocks)
     dmax, same = _compare(np.ascontiguousarray(b[:, 0, :49, :61].numpy()), "cpu")

@@ -135,15 +135,49 @@ def test_skip_bad_frames(tmp_path, capsys):
     truncate(bad)
     rc, _, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o1", "--no-progress")
     assert rc == 1
-    assert_one_error_line(err, str(bad), "truncated PNG")
-    assert not (tmp_path / "o1" / "summary.json").exists()
-    assert not [p for p in (tmp_path / "o1").iterdir()]  # the failed run left nothing behind
+    assert_one_error_line(err, str(bad), "truncated PNG", "--skip-bad-frames")  # the flag that goes on
+    assert not (tmp_path / "o1").exists()  # the failed run left nothing behind, not even the folder it made
     rc, stdout, err = run_cli(capsys, "track", cfg, "--euroc", seq, "--out", tmp_path / "o2",
                               "--skip-bad-frames", "--no-tracks", "--no-progress")
     assert rc == 0, err
     s = json.loads((tmp_path / "o2" / "summary.json").read_text())
     assert s["frames"] == 3 and s["skipped_bad_frames"] == 1 and bad.name in s["skipped"][0]["source"]
     assert "1 bad frames" in stdout
+
+
+def test_failed_run_removes_only_the_folders_it_made(tmp_path, capsys):
+    """An error after ``--out``'s folders were made (an image of the wrong size) removes them
+    while empty, the parents it made too, and never a folder the user made."""
+    small = tmp_path / "small"
+    small.mkdir()
+    cv2.imwrite(str(small / "1403715273262142976.png"), np.zeros((40, 60), np.uint8))
+    rc, _, err = run_cli(capsys, "track", CONFIG, "--images", small, "--out", tmp_path / "a" / "b" / "run",
+                         "--no-progress")
+    assert rc == 1 and "60x40" in err
+    assert not (tmp_path / "a").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    rc, _, err = run_cli(capsys, "track", CONFIG, "--images", small, "--out", mine, "--no-progress")
+    assert rc == 1 and mine.is_dir()
+
+
+def test_no_tracks_summary_and_track_paths_colour_bar(tmp_path, capsys, monkeypatch):
+    """``--no-tracks``: the summary does not list ``tracks/``; ``track_paths.png`` has a colour bar
+    (one more axes per panel) for the track lengths."""
+    from torch_frontend.outputs import RunRecorder
+
+    figs = []
+    save = RunRecorder._save_fig
+    monkeypatch.setattr(RunRecorder, "_save_fig", lambda self, fig, d, name: figs.append((name, fig)) or
+                        save(self, fig, d, name))
+    seq = make_asl(tmp_path / "a", n=3, small=True)
+    rc, stdout, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", seq, "--out", tmp_path / "o",
+                              "--no-tracks", "--no-progress")
+    assert rc == 0, err
+    outputs = [ln for ln in stdout.splitlines() if ln.startswith("outputs")]
+    assert len(outputs) == 1 and "track_paths.png" in outputs[0] and "tracks/" not in outputs[0]
+    fig = dict(figs)["track_paths.png"]
+    assert len(fig.axes) == 2 and "track length" in fig.axes[1].get_ylabel()
 
 
 def _bad_inputs(tmp_path: Path):
@@ -175,7 +209,7 @@ def test_bad_inputs_one_line_and_exit_code(tmp_path, capsys):
         rc, _, err = run_cli(capsys, "track", CONFIG, *argv, "--out", out, "--no-progress")
         assert rc == code, (argv, err)
         assert_one_error_line(err, *needles)
-        assert not out.exists() or not any(out.iterdir()), argv
+        assert not out.exists(), argv  # the folder the run made is gone with it
     # config problems: exit 2, the file named
     rc, _, err = run_cli(capsys, "track", tmp_path / "missing.yaml", "--euroc", SAMPLE, "--out", tmp_path / "o")
     assert rc == 2
@@ -244,7 +278,7 @@ def test_interrupt_leaves_no_partial_output(tmp_path, capsys, monkeypatch):
     rc, _, err = run_cli(capsys, "track", small_config(tmp_path), "--euroc", seq, "--out", out, "--no-progress")
     assert rc == 130
     assert_one_error_line(err, "interrupted")
-    assert list(out.iterdir()) == []
+    assert not out.exists()  # nor the folder the run made
 
 
 def test_out_is_a_file(tmp_path, capsys):

@@ -23,7 +23,7 @@ from torch_frontend.loop.report import LOOP_COLUMNS, OUTPUT_FILES, STREAM_FILES
 from torch_frontend.pipelines import loop as loop_run
 from torch_frontend.trajectory import Trajectory, read_trajectory, write_tum, write_vins_csv
 
-from ._helpers import assert_one_error_line, run_cli
+from ._helpers import assert_one_error_line, run_cli, truncate
 
 SMALL_DEMO = dict(keyframes_per_lap=56)
 
@@ -273,6 +273,24 @@ def test_bad_empty_image_folder(short_inputs, tmp_path, capsys):
     rc, _, err = run_cli(capsys, *_loop_args(short_inputs, tmp_path / "o", **{"--images": empty}))
     assert rc == 1
     assert_one_error_line(err, str(empty), "empty")
+
+
+def test_bad_frame_names_the_flag_and_leaves_no_folder(short_inputs, tmp_path, capsys):
+    """A corrupt image stops ``loop`` with the flag that goes on (``--skip-bad-frames``), and the
+    folders the run made for ``--out`` (here ``new/``) are gone with it; a folder the user made stays."""
+    import shutil
+
+    imgs = tmp_path / "imgs"
+    shutil.copytree(short_inputs["images"], imgs)
+    bad = sorted(imgs.iterdir())[3]
+    truncate(bad)
+    rc, _, err = run_cli(capsys, *_loop_args(short_inputs, tmp_path / "new" / "o", **{"--images": imgs}))
+    assert rc == 1
+    assert_one_error_line(err, bad.name, "--skip-bad-frames")
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()
+    rc, _, err = run_cli(capsys, *_loop_args(short_inputs, tmp_path / "mine" / "o", **{"--images": imgs}))
+    assert rc == 1 and (tmp_path / "mine").is_dir()
 
 
 def test_bad_usage(short_inputs, tmp_path, capsys):

@@ -31,9 +31,9 @@ from typing import Callable, Dict, List, Tuple
 import pytest
 import torch
 
-from .conftest import REPO
+from .conftest import REPO, SHARED
 
-SIM_DIR = REPO.parent / "shared" / "tools" / "cuda_sim"
+SIM_DIR = SHARED / "tools" / "cuda_sim"
 SCRIPT = REPO / "benchmarks" / "sim_cuda_loop.py"
 _CUDA_BUILD = bool(torch.version.cuda or getattr(torch.version, "hip", None))
 

@@ -70,10 +70,12 @@ def test_every_block_is_known():
 
 @pytest.mark.parametrize("page", PYTHON_PAGES, ids=lambda p: p.name)
 def test_python_blocks_run(page, monkeypatch):
-    """The page's ``python`` blocks run as written, in order in one namespace, from the repo root
-    (against the sample data in the package)."""
+    """The page's ``python`` blocks run as written, from the repo root (against the sample data in
+    the package): the README's each on its own (imports included, as a reader copies one; each sets
+    1 thread, as the README tells script users), another page's in order in one namespace."""
     monkeypatch.chdir(REPO)
     namespace: dict = {"__name__": "__docs__"}
+    spaces = []
     ran = marked = 0
     for lang, code, line, reason in _blocks(page):
         if lang != "python":
@@ -81,15 +83,23 @@ def test_python_blocks_run(page, monkeypatch):
         if reason is not None:
             marked += 1
             continue
+        if page == README:
+            namespace = {"__name__": "__docs__"}
+            assert "torch.set_num_threads(1)" in code, f"README.md:{line}: the block does not set 1 thread"
         # line numbers of tracebacks point into the page
         exec(compile("\n" * line + code, str(page), "exec"), namespace)
+        spaces.append(namespace)
         ran += 1
     assert ran >= 1 or marked  # a page whose every python block says why it is not run
     if page == README:
-        assert namespace["x"].grad is not None and namespace["x"].grad.abs().sum() > 0
-        assert int(namespace["frame"].present.sum()) > 100  # features tracked through the sample
-        assert not namespace["frame"].published.any() and not namespace["frame"].valid.any()  # as the tour says
-        assert namespace["f"].valid.any()
+        tour = spaces[0]
+        assert tour["x"].grad is not None and tour["x"].grad.abs().sum() > 0
+        assert int(tour["frame"].present.sum()) > 100  # features tracked through the sample
+        # the tour ends on a published frame: valid features, a non-empty point cloud
+        assert tour["frame"].published.all() and int(tour["frame"].valid.sum()) > 100
+        assert tour["cloud"]["points"].shape[0] > 50
+        assert tour["f"].valid.any()
+        assert tour["rf"].batch_size == 2  # a rig of two configs
 
 
 def _shell_commands(code: str):

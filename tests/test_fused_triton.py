@@ -104,7 +104,8 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     t0 = time.time()
     out = _run(_PTX_SCRIPT, interpret=False)
     report = json.loads(out.strip().splitlines()[-1])
-    assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "corners_response",
+    assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "clahe_lut",
+                           "clahe_blend", "mask_decide", "mask_draw", "corners_response",
                            "corners_candidates"}, sorted(report)
     for name, r in report.items():
         assert r["fma"] == [], (name, r)
@@ -428,3 +429,58 @@ def test_lk_forward_backward_from_pts_matches_cv2_interpreted():
 @pytest.mark.slow
 def test_lk_forward_backward_from_result_matches_cv2_interpreted():
     _run_scenario("fb_from_result")
+
+
+def _scenario_mask():
+    """setMask (``_triton_mask.py``) == the CPU kernel == the tensor kernel, bit for bit: a small
+    real-corner case with ties (two streams, one shared base and one per stream), the self-check's
+    case, .5 centres, borders, NaN / inf, invalid slots, float64 points and int32 counts."""
+    import math
+
+    import torch
+
+    from torch_frontend.fused import selfcheck
+    from torch_frontend.fused._triton_mask import set_mask_cuda
+    from torch_frontend.fused.mask_op import disc_r2, set_mask_op
+    from torch_frontend.masks import _distance_mask_impl
+
+    t0 = _setup()
+    H, W = 60, 80
+    crops = [_frame(k)[200:200 + H, 300:300 + W] for k in (0, 7)]
+    rng = np.random.default_rng(9)
+    N = 40
+    pts = np.full((2, N, 2), -5.0, np.float32)
+    for b, c in enumerate(crops):
+        cs = cv2.goodFeaturesToTrack(c, 28, 0.01, 3).reshape(-1, 2)
+        pts[b, :len(cs)] = cs + rng.normal(0, 1.0, cs.shape)
+    pts[:, 28:34] = [[0.5, 0.5], [-0.5, 10], [W - 0.5, 20], [30.5, H - 0.5], [np.nan, 5], [6, np.inf]]
+    cnt = rng.integers(1, 4, (2, N))
+    valid = rng.random((2, N)) > 0.1
+    base = np.full((2, H, W), 255, np.uint8)
+    base[1, :, :5] = 254
+    base[0, 40:, 60:] = 0
+    cases = []
+    for dt, it in ((torch.float32, torch.int64), (torch.float64, torch.int32)):
+        for bm in (base[:1], base):
+            for radius in (0.0, 6.0, 9.5, 25.0):
+                cases.append((torch.from_numpy(pts).to(dt), torch.from_numpy(cnt).to(it), torch.from_numpy(valid),
+                              torch.from_numpy(np.ascontiguousarray(bm)), radius))
+    c = {k: v for k, v in selfcheck.case().items()}
+    p = torch.cat((c["pts"], c["init"]), 1)
+    cases.append((p, (torch.arange(48).view(2, 24) * 7) % 4, torch.cat((c["valid"], c["valid"]), 1),
+                  torch.full((1, 72, 104), 255, dtype=torch.uint8), 17.0))
+    for k, (p, q, v, bm, radius) in enumerate(cases):
+        r2 = disc_r2(radius, bm.shape[1], bm.shape[2])
+        keep, mask = set_mask_cuda(p, q, v, bm, r2, math.isqrt(r2))
+        ck, cm = set_mask_op(p, q, v, bm, radius)
+        tk, tm = _distance_mask_impl(p, q, v, radius, bm.expand(p.shape[0], -1, -1).clone())[:2]
+        assert torch.equal(keep, ck) and torch.equal(mask, cm), f"case {k}: differs from the CPU kernel"
+        assert torch.equal(keep, tk) and torch.equal(mask, tm), f"case {k}: differs from the tensor kernel"
+        assert keep.any() or radius == 0.0
+    print(f"PASS mask {time.time() - t0:.1f}s")
+
+
+@pytest.mark.slow
+def test_set_mask_matches_the_cpu_kernel_interpreted():
+    """setMask's decide and draw kernels under the interpreter: the CPU kernel's bits on every case."""
+    _run_scenario("mask")

@@ -32,6 +32,13 @@ def _clahe():
     return _clahe_impl, lambda cap: _clahe_impl(src, 3.0, 2, 2, capturable=cap)
 
 
+def _clahe_fused():
+    from torch_frontend.equalize import _clahe_impl
+
+    src = _images()[:, 0].contiguous()
+    return _clahe_impl, lambda cap: _clahe_impl(src, 3.0, 2, 2, capturable=cap, backend="fused")
+
+
 def _corners():
     from torch_frontend.corners import _good_features_impl
 
@@ -48,7 +55,7 @@ def _corners_fused():
                                                                 capturable=cap, backend="fused")
 
 
-def _masks():
+def _masks(backend="tensor"):
     from torch_frontend.masks import _distance_mask_impl
 
     g = torch.Generator().manual_seed(1)
@@ -56,7 +63,7 @@ def _masks():
     pri = torch.randint(1, 4, (B, 8), generator=g)
     valid = torch.ones(B, 8, dtype=torch.bool)
     return _distance_mask_impl, lambda cap: _distance_mask_impl(
-        pts, pri, valid, 3.0, torch.full((B, 20, 20), 255, dtype=torch.uint8), capturable=cap)
+        pts, pri, valid, 3.0, torch.full((B, 20, 20), 255, dtype=torch.uint8), capturable=cap, backend=backend)
 
 
 def _lk():
@@ -88,11 +95,18 @@ def _ransac():
 # kernel module -> the builder of its ``_impl`` and a call on tiny inputs (a new kernel adds a line)
 KERNELS = {
     "equalize": ("torch_frontend.equalize", _clahe),
+    "equalize:fused": ("torch_frontend.equalize", _clahe_fused),  # the fused op behind the same _impl
     "corners": ("torch_frontend.corners", _corners),
-    "corners_fused": ("torch_frontend.corners", _corners_fused),  # the same door, the fused op behind it
+    "corners:fused": ("torch_frontend.corners", _corners_fused),  # the fused op behind the same _impl
     "masks": ("torch_frontend.masks", _masks),
     "lk": ("torch_frontend.lk", _lk),
     "ransac": ("torch_frontend.ransac", _ransac),
+}
+
+
+# the same contract for a kernel's other backends (the fused ops behind an ``_impl``)
+BACKEND_VARIANTS = {
+    "masks[fused]": ("torch_frontend.masks", lambda: _masks("fused")),
 }
 
 
@@ -108,13 +122,13 @@ def test_every_kernel_is_listed():
     kernels = dict(LAYERS)["kernels"]
     # _tuning: strategies; pyramid: one form on both paths; fused: the custom ops behind the pyramid and
     # the LK (their doors are those kernels', tests/test_fused.py)
-    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == sorted(
-        k for k in KERNELS if not k.endswith("_fused"))
+    assert sorted(k for k in kernels if k not in ("_tuning", "pyramid", "fused")) == \
+        sorted({k.split(":")[0] for k in KERNELS})  # "module:variant": another backend of the module's _impl
 
 
-@pytest.mark.parametrize("kernel", list(KERNELS))
+@pytest.mark.parametrize("kernel", list(KERNELS) + list(BACKEND_VARIANTS))
 def test_impl_follows_the_kernel_contract(kernel):
-    module, build = KERNELS[kernel]
+    module, build = {**KERNELS, **BACKEND_VARIANTS}[kernel]
     importlib.import_module(module)
     old = _static_names(module)
     assert not old, f"{module}: capturable helpers must be named *_capturable, not {old}"

@@ -138,8 +138,10 @@ def test_extrinsic_from_configs():
     torch.testing.assert_close(R2, R)
     torch.testing.assert_close(t2, t)
     from torch_frontend.config import TrackerConfig
+    from torch_frontend.errors import ConfigWarning
 
-    R3, t3 = loop_run.extrinsic_from_config(TrackerConfig())
+    with pytest.warns(ConfigWarning, match="no camera-to-body extrinsic .* identity is used"):
+        R3, t3 = loop_run.extrinsic_from_config(TrackerConfig(path="bare.yaml"))
     assert torch.equal(R3, torch.eye(3, dtype=torch.float64)) and torch.equal(t3, torch.zeros(3, dtype=torch.float64))
 
 

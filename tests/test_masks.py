@@ -13,6 +13,9 @@ from torch_frontend.masks import disc_offsets, distance_mask, fisheye_mask
 
 from .conftest import SHARED_DATA, load_gray, sample_frames, shared_data_or_skip
 
+#: setMask's kernels: the tensor kernel and the fused op (``fused/mask_op.py``); the same bits
+BACKENDS = ["tensor", "fused"]
+
 
 def _reference(pts, pri, val, r, base):
     """VINS setMask written sequentially (stable sort by -track_cnt, cv2.circle discs)."""
@@ -28,10 +31,10 @@ def _reference(pts, pri, val, r, base):
     return keep, m
 
 
-def _check(pts, pri, val, r, base, device):
+def _check(pts, pri, val, r, base, device, backend="tensor"):
     B = pts.shape[0]
     keep, mask = distance_mask(torch.from_numpy(pts).to(device), torch.from_numpy(pri).to(device),
-                               torch.from_numpy(val).to(device), r, torch.from_numpy(base).to(device))
+                               torch.from_numpy(val).to(device), r, torch.from_numpy(base).to(device), backend=backend)
     assert keep.shape == pri.shape and mask.dtype == torch.uint8 and mask.shape == (B,) + base.shape
     edge = 0
     for b in range(B):
@@ -41,7 +44,8 @@ def _check(pts, pri, val, r, base, device):
     return edge
 
 
-def test_distance_mask_random(device):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_distance_mask_random(device, backend):
     rng = np.random.default_rng(0)
     B, N, H, W = 4, 200, 120, 160
     pts = rng.uniform(-3, [W + 3, H + 3], (B, N, 2)).astype(np.float32)
@@ -49,11 +53,12 @@ def test_distance_mask_random(device):
     pri = rng.integers(1, 5, (B, N))  # many ties: stable order by index
     val = rng.random((B, N)) > 0.1
     base = fisheye_mask(H, W, radius=75).numpy()
-    edge = _check(pts, pri, val, 12, base, device)
+    edge = _check(pts, pri, val, 12, base, device, backend)
     assert edge == 0  # the disc equals cv2.circle pixel for pixel (see test below)
 
 
-def test_distance_mask_real(device):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_distance_mask_real(device, backend):
     """Tracked features = OpenCV corners of EuRoC frames, jittered; VINS radius 30; JPEG-like mask."""
     rng = np.random.default_rng(2)
     frames = [load_gray(p) for p in sample_frames("cam0")[:4]]
@@ -67,20 +72,21 @@ def test_distance_mask_real(device):
     pri = rng.integers(1, 10, (4, N))
     base = np.full((480, 752), 255, np.uint8)
     base[:, :40] = 254  # "JPEG ring" values: not exactly 255 -> point dropped
-    edge = _check(pts, pri, val, 30, base, device)
+    edge = _check(pts, pri, val, 30, base, device, backend)
     assert edge == 0
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 40), r=st.integers(0, 20))
-def test_distance_mask_property(seed, n, r):
+def test_distance_mask_property(backend, seed, n, r):
     rng = np.random.default_rng(seed)
     H, W = 40, 50
     pts = rng.uniform(-2, [W + 2, H + 2], (2, n, 2)).astype(np.float32)
     pri = rng.integers(0, 3, (2, n))
     val = rng.random((2, n)) > 0.2
     base = (rng.random((H, W)) > 0.05).astype(np.uint8) * 255
-    assert _check(pts, pri, val, r, base, "cpu") == 0
+    assert _check(pts, pri, val, r, base, "cpu", backend) == 0
 
 
 def test_disc_equals_cv2_circle():
@@ -105,11 +111,12 @@ def test_disc_equals_cv2_circle():
     assert keep.all()
 
 
-def test_distance_mask_rules():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_distance_mask_rules(backend):
     # priority order wins, then index; .5 rounds to even; outside the image is dropped
     pts = torch.tensor([[[10.0, 10.0], [20.0, 10.0], [10.5, 40.5], [-0.6, 5.0], [60.0, 60.0]]])
     pri = torch.tensor([[1, 3, 2, 9, 3]])
-    keep, mask = distance_mask(pts, pri, None, 10, height=64, width=64)
+    keep, mask = distance_mask(pts, pri, None, 10, height=64, width=64, backend=backend)
     assert keep.tolist() == [[False, True, True, False, True]]
     assert mask[0, 40, 10] == 0 and mask[0, 40, 21] == 255 and mask[0, 40, 20] == 0  # centre (10, 40)
     with pytest.raises(ValueError):

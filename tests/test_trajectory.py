@@ -1,4 +1,4 @@
-"""Trajectory files (TUM / VINS CSV / EuRoC), interpolation, Umeyama alignment, ATE and drift."""
+"""Trajectory files (TUM / VINS CSV / EuRoC / KITTI, detected from the content), interpolation, Umeyama alignment, ATE and drift."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from tests.conftest import shared_data_or_skip
 from torch_frontend.errors import DataError
 from torch_frontend.geometry import R_to_quat, R_to_ypr, quat_to_R, ypr_to_R
 from torch_frontend.trajectory import (
+    FORMAT_HELP,
     Trajectory,
     add_drift,
     align_se3,
@@ -186,6 +187,50 @@ def test_bad_inputs_name_file_and_line(tmp_path, case):
     assert str(p) in str(e.value)
 
 
+def _kitti_lines(tr: Trajectory) -> str:
+    R = quat_to_R(tr.q).numpy()
+    return "".join(" ".join(f"{v:.9e}" for v in np.concatenate([R[k], tr.t[k, :, None].numpy()], 1).reshape(-1))
+                   + "\n" for k in range(tr.time.shape[0]))
+
+
+def test_four_formats_detected_from_the_content(tmp_path):
+    """TUM, VINS CSV, EuRoC ground truth and KITTI (its times given) of one trajectory read back
+    as that trajectory, each detected from its lines."""
+    tr = make_traj(20)
+    write_tum(tmp_path / "a.tum", tr)
+    write_vins_csv(tmp_path / "a.csv", tr)
+    rows = ["#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z [],v [m s^-1]\n"]
+    for k in range(20):
+        ns = round(float(tr.time[k]) * 1e9)
+        rows.append(",".join([str(ns), *(f"{v:.9f}" for v in (*tr.t[k].tolist(), *tr.q[k].tolist())), "0.1"]) + "\n")
+    (tmp_path / "gt.csv").write_text("".join(rows))
+    (tmp_path / "00.txt").write_text(_kitti_lines(tr))
+    for name in ("a.tum", "a.csv", "gt.csv", "00.txt"):
+        r = read_trajectory(tmp_path / name, times=tr.time.numpy())
+        assert (r.time - tr.time).abs().max() < 1e-6, name
+        assert (r.t - tr.t).abs().max() < 5e-6, name
+        assert rot_dist_deg(r.q, tr.q).max() < 1e-3, name
+    assert torch.equal(read_trajectory(tmp_path / "00.txt", "kitti", times=tr.time).time, tr.time)
+
+
+def test_kitti_rotation_checked(tmp_path):
+    p = tmp_path / "00.txt"
+    p.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DataError, match=r"00\.txt:2: the 3x3 part is not a rotation"):
+        read_trajectory(p, times=[0.0, 0.1])
+
+
+@pytest.mark.parametrize("text", ["1 2 3 4 5 6\n", "1,2,3\n", "1 2 3 4 5 6 7 8 9 10 11 12 13\n"])
+def test_unknown_format_names_the_formats(tmp_path, text):
+    p = tmp_path / "poses.txt"
+    p.write_text("# a comment\n" + text)
+    with pytest.raises(DataError, match=r"poses\.txt:2: expected") as e:
+        read_trajectory(p)
+    assert FORMAT_HELP in str(e.value)
+    for name in ("TUM", "VINS CSV", "EuRoC ground-truth CSV", "KITTI"):
+        assert name in FORMAT_HELP
+
+
 def test_missing_file_and_wrong_format(tmp_path):
     with pytest.raises(DataError, match="trajectory file not found") as e:
         read_trajectory(tmp_path / "nope.csv")
@@ -197,7 +242,7 @@ def test_missing_file_and_wrong_format(tmp_path):
     with pytest.raises(DataError, match=r"v\.csv:1: expected 8 space-separated"):
         read_trajectory(p, "tum")
     with pytest.raises(ValueError, match="format"):
-        read_trajectory(p, "kitti")
+        read_trajectory(p, "g2o")
 
 
 # ---------------------------------------------------------------------------------------------

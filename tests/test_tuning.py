@@ -59,9 +59,12 @@ def test_strategy_by_device():
     assert _tuning.for_device(torch.device("meta")) is _tuning.ONE_PASS
     # the fused pyramid and LK where they have kernels (numba, Triton); the tensor kernels elsewhere
     assert (_tuning.CPU.lk_backend, _tuning.CUDA.lk_backend, _tuning.ONE_PASS.lk_backend) == ("fused", "fused", "tensor")
+    assert (_tuning.CPU.clahe_backend, _tuning.CUDA.clahe_backend, _tuning.ONE_PASS.clahe_backend) == \
+        ("fused", "fused", "tensor")
     assert (_tuning.CPU.corner_backend, _tuning.CUDA.corner_backend, _tuning.ONE_PASS.corner_backend) == (
         "fused", "fused", "tensor")
-    assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor", corner_backend="tensor") == _tuning.ONE_PASS
+    assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor", clahe_backend="tensor",
+                               corner_backend="tensor") == _tuning.ONE_PASS
     one = _tuning.ONE_PASS
     assert one.clahe_rows(64 * 480, 752) == [(0, 64 * 480)]
     assert one.pyramid_streams(64, 480, 752) is None

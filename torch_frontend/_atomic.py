@@ -26,7 +26,8 @@ Convention (what may be replaced):
     its stale temporaries whose process no longer runs on this machine (a run killed by SIGKILL or
     a power cut); those of a live process (a concurrent writer) are left alone, and a backup left by
     a swap cut between its two renames is moved back when the target is missing (or an empty
-    folder). Nothing else is ever removed.
+    folder). Nothing else is ever removed, except the folders a failed run created itself
+    (:func:`make_folders`), and those only while empty (:func:`remove_empty_folders`).
 """
 
 from __future__ import annotations
@@ -57,6 +58,8 @@ __all__ = [
     "clean_stale",
     "foreign_entries",
     "legacy_temporaries",
+    "make_folders",
+    "remove_empty_folders",
     "replace_dir",
     "stale_staging",
     "write_bytes_atomic",
@@ -202,6 +205,37 @@ def write_bytes_atomic(path: Path, data: bytes) -> None:
 
 def write_text_atomic(path: Path, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def make_folders(path) -> List[Path]:
+    """``mkdir -p path``; returns the folders it created, outermost first (empty when ``path``
+    existed): what :func:`remove_empty_folders` may remove again after a failed run."""
+    p = Path(os.path.abspath(path))
+    missing: List[Path] = []
+    while not os.path.lexists(p):
+        missing.append(p)
+        if p.parent == p:
+            break
+        p = p.parent
+    created: List[Path] = []
+    for d in reversed(missing):
+        try:
+            d.mkdir()
+        except FileExistsError:  # made meanwhile by someone else: not ours
+            continue
+        created.append(d)
+    return created
+
+
+def remove_empty_folders(created: Sequence[Path]) -> None:
+    """Remove those of ``created`` (folders a run made, :func:`make_folders`) that are empty,
+    innermost first; a folder that holds anything (whoever wrote it) stays, and nothing else is
+    ever removed (``os.rmdir`` only removes empty folders)."""
+    for d in reversed(list(created)):
+        try:
+            os.rmdir(d)
+        except OSError:  # not empty, gone, or not ours to remove: left as it is
+            return
 
 
 def legacy_temporaries(*names: str) -> Tuple[str, ...]:

@@ -87,6 +87,11 @@ class Strategy:
     #: against cv2's 1.86 and the tensor LK's ~24 ms; count_step.py: 2 ops for the pyramid and the LK
     #: of a capturable step instead of ~2,900. A call or a tracker overrides it (``lk_backend=``)
     lk_backend: str = "tensor"
+    #: CLAHE of 8-bit frames: ``"fused"``, one custom op (``fused/clahe_op.py``: numba on the CPU, two
+    #: Triton launches on CUDA; OpenCV's bits), or ``"tensor"``, ``equalize``'s tensor CLAHE (the same
+    #: bits). bench_clahe.py (752x480, 1 thread): see benchmarks/results/clahe.json. A call or a tracker
+    #: overrides it (``clahe_backend=``)
+    clahe_backend: str = "tensor"
     #: goodFeaturesToTrack of 8-bit frames (min eigenvalue, block 3): ``"fused"``, one custom op
     #: (``fused/corners_op.py``: numba on the CPU, Triton + the capturable selection on CUDA; the
     #: tensor path's bits, response only where the mask matters), or ``"tensor"`` (``corners/``).
@@ -159,6 +164,7 @@ CPU = Strategy(
     pyramid_conv=False,
     clahe_block_keys=False,
     lk_backend="fused",
+    clahe_backend="fused",
     corner_backend="fused",
 )
 
@@ -183,8 +189,8 @@ ONE_PASS = Strategy(
     clahe_block_keys=True,
 )
 
-#: CUDA: one pass, and the fused kernels (Triton) for the pyramid and the LK
-CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", corner_backend="fused")
+#: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE and detection
+CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", corner_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)

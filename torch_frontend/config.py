@@ -117,6 +117,8 @@ class TrackerConfig:
         camera: the camodocal model of camera 0 (a ``torch_frontend.camera.CameraModel``), or None.
         camera1: camera 1 for stereo VINS-Fusion configs, else None.
         body_T_cam0, body_T_cam1: 4×4 float64 extrinsics when the file gives them (VINS-Fusion).
+        origin: where the settings come from when not (only) from ``path`` (e.g. a KITTI
+            sequence's: "KITTI calib.txt P0; VINS-Mono front-end defaults"); ``""`` for a file.
         raw: every key of the file as read (matrices as numpy arrays).
     """
 
@@ -144,6 +146,7 @@ class TrackerConfig:
     camera1: Any = None
     body_T_cam0: Optional[np.ndarray] = None
     body_T_cam1: Optional[np.ndarray] = None
+    origin: str = ""
     raw: Dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
 
     def __post_init__(self):
@@ -160,7 +163,8 @@ class TrackerConfig:
         extra = "".join([f", F_method {self.F_method}" if self.F_method != "opencv" else "",
                          ", flow_back 1" if self.flow_back else "",
                          f", num_of_cam {self.num_of_cam}" if self.num_of_cam != 1 else ""])
-        return (f"config        {self.path}: {model} {self.image_width}x{self.image_height}, max_cnt {self.max_cnt}, "
+        origin = f" ({self.origin})" if self.origin else ""
+        return (f"config        {self.path}{origin}: {model} {self.image_width}x{self.image_height}, max_cnt {self.max_cnt}, "
                 f"min_dist {self.min_dist}, freq {self.freq} Hz, equalize {int(self.equalize)}, "
                 f"F_threshold {self.F_threshold:g}, fisheye {int(self.fisheye)}{extra}")
 

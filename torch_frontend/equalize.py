@@ -42,7 +42,8 @@ from .errors import ConfigError
 __all__ = ["clahe"]
 
 
-def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int, int] = (8, 8)) -> torch.Tensor:
+def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int, int] = (8, 8),
+          backend: Optional[str] = None) -> torch.Tensor:
     """Contrast-limited adaptive histogram equalisation, as ``cv2.createCLAHE(...).apply``.
 
     Convention:
@@ -54,6 +55,10 @@ def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int,
         img: ``(B, 1, H, W)`` or ``(B, H, W)``, uint8 or float 0..255.
         clip_limit: OpenCV clip limit (3.0 in VINS).
         tile_grid_size: ``(tiles_x, tiles_y)``.
+        backend: the kernel: None / ``"auto"`` (the device's ``_tuning`` strategy: the fused op
+            ``torch_frontend::clahe`` on the CPU and CUDA, falling back with one warning where it
+            cannot run), ``"fused"`` (a ``ConfigError`` where it cannot run) or ``"tensor"`` (the
+            tensor CLAHE below). Both give OpenCV's bits (``docs/kernels.md``, "CLAHE").
 
     Returns:
         ``(B, 1, H, W)`` uint8 (same layout as the input: ``(B, H, W)`` in, ``(B, H, W)`` out).
@@ -70,8 +75,11 @@ def clahe(img: torch.Tensor, clip_limit: float = 3.0, tile_grid_size: Tuple[int,
     check_grid(x.shape[-2], x.shape[-1], gx, gy)
     if x.dtype != torch.uint8:
         x = x.round().clamp(0, 255).to(torch.uint8)
+    from .fused import resolve_clahe_backend
+
+    be = resolve_clahe_backend(backend, x.device)
     # _clahe_impl views the image as flat rows: a transposed / sliced image is copied first
-    out = _clahe_impl(x[:, 0].contiguous(), float(clip_limit), gx, gy).image
+    out = _clahe_impl(x[:, 0].contiguous(), float(clip_limit), gx, gy, backend=be).image
     return out if squeeze else out.unsqueeze(1)
 
 
@@ -98,7 +106,8 @@ class ClaheResult(NamedTuple):
     overflow: Optional[torch.Tensor] = None
 
 
-def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, capturable: bool = False) -> ClaheResult:
+def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, capturable: bool = False,
+                backend: str = "tensor") -> ClaheResult:
     """CLAHE of ``src`` ``(B, H, W)`` uint8, contiguous, no input checks (the kernel's ``_impl``):
     a :class:`ClaheResult` holding the ``(B, H, W)`` uint8 image.
 
@@ -110,7 +119,15 @@ def _clahe_impl(src: torch.Tensor, clip_limit: float, gx: int, gy: int, *, captu
     ``capturable``: one block on every device, histograms by ``index_add_`` into a buffer of known
     size (no ``bincount``: its output size is read back on CUDA), a kernel count independent of B;
     the output is the same, bit for bit (:func:`_clahe_capturable`).
+
+    ``backend``: a resolved backend (``fused.resolve_clahe_backend``): ``"fused"`` runs the one op
+    ``torch_frontend::clahe`` (``fused/clahe_op.py``; capturable on CUDA: two launches, no sync)
+    on both paths, ``"tensor"`` the tensor code below. The same bits.
     """
+    if backend == "fused":
+        from .fused.clahe_op import clahe_op
+
+        return ClaheResult(clahe_op(src, float(clip_limit), gx, gy))
     if capturable:
         return ClaheResult(_clahe_capturable(src, clip_limit, gx, gy))
     B, H, W = src.shape
@@ -442,13 +459,15 @@ def _clahe_slope(src: torch.Tensor, clip_limit: float, gx: int, gy: int) -> torc
 
 
 def _clahe_straight_through(img: torch.Tensor, clip_limit: float, gx: int, gy: int, *,
-                            capturable: bool = False) -> torch.Tensor:
+                            capturable: bool = False, backend: str = "tensor") -> torch.Tensor:
     """CLAHE of ``img (B, H, W)`` float grey levels that are integers 0..255 (the differentiable
     tracker's door makes them so): ``(B, H, W)`` float holding :func:`_clahe_impl`'s output bit for bit,
     with the straight-through gradient ``d out / d in`` = the LUT's local slope
-    (:func:`_clahe_slope`). Without a gradient to record: the 8-bit result as float."""
+    (:func:`_clahe_slope`). Without a gradient to record: the 8-bit result as float. ``backend``
+    computes the values (a resolved backend, :func:`_clahe_impl`); the slope is always the tensor
+    CLAHE's (its histograms, unrounded LUTs)."""
     u8 = img.detach().to(torch.uint8).contiguous()
-    hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable).image.to(img.dtype)
+    hard = _clahe_impl(u8, clip_limit, gx, gy, capturable=capturable, backend=backend).image.to(img.dtype)
     if not derivative_wanted(img):
         return hard
     slope = _clahe_slope(u8, clip_limit, gx, gy).to(img.dtype)

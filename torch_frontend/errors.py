@@ -32,9 +32,29 @@ class DataWarning(UserWarning):
     (once per sequence). The CLI prints it as one ``torch-frontend: note: ...`` line."""
 
 
+class WorldFrameWarning(UserWarning):
+    """Loop closure's world frame looks wrong: poses whose motion is far from horizontal in the
+    assumed up axis (the 4-DoF pose graph's yaw axis, the plots' viewing axis), naming the likely
+    up axis (``torch_frontend.loop.world``). The CLI prints it as one ``torch-frontend: warning:``
+    line."""
+
+
 class DataError(ValueError):
     """Input data is missing, unreadable or inconsistent (a user error, not a bug).
 
     The message says what is wrong and where (file, folder, bag, topic); the CLI prints it as one
     line and exits with a non-zero code.
     """
+
+
+class BadFrameError(DataError):
+    """A frame that cannot be read (a missing, truncated or corrupt image file, an undecodable
+    message) stopped a run. The readers skip such frames with ``skip_bad=True`` (the pipelines'
+    ``skip_bad_frames``, the CLI's ``--skip-bad-frames``), and the message says so, naming the
+    option of the layer that raised it (:meth:`naming`)."""
+
+    @classmethod
+    def naming(cls, message: str, option: str) -> BadFrameError:
+        """``message`` and the option that skips such frames, in the library's style (backticks:
+        a front end puts its own spelling in its place): "... (`skip_bad` skips unreadable frames)"."""
+        return cls(f"{message} (`{option}` skips unreadable frames)")

@@ -28,6 +28,7 @@ from ._checks import check_points, check_shape, default_valid
 from .corners.selection import _resolve_rounds
 from .corners.selection_capturable import _iota, _lower, _pair_conflicts, _resolve_dense
 from .errors import ConfigError
+from .fused.mask_op import set_mask_op
 
 __all__ = ["distance_mask", "fisheye_mask", "disc_offsets"]
 
@@ -80,6 +81,7 @@ def distance_mask(
     base_mask: torch.Tensor | None = None,
     height: int | None = None,
     width: int | None = None,
+    backend: str | None = None,
 ) -> Tuple[torch.Tensor, torch.Tensor]:
     """VINS ``setMask``: keep well-spaced points (older tracks first) and build the detection mask.
 
@@ -97,6 +99,10 @@ def distance_mask(
         radius: disc radius in pixels (``MIN_DIST``).
         base_mask: optional ``(H, W)``, ``(B, H, W)`` or ``(B, 1, H, W)`` uint8 (e.g. the fisheye
             mask); default all 255 of size ``height`` x ``width``.
+        backend: ``None`` / ``"auto"`` (the device's strategy, as the LK's: the fused op
+            ``torch_frontend::set_mask`` on the CPU and CUDA), ``"fused"`` or ``"tensor"``
+            (``fused.resolve_backend``); the same bits either way. The fused op needs an integer
+            ``priority``: a float one runs the tensor kernel under ``"auto"``.
 
     Returns:
         keep: ``(B, N)`` bool, in the input order (VINS also reorders by priority; use
@@ -111,8 +117,21 @@ def distance_mask(
     if radius < 0:
         raise ConfigError(f"radius must be >= 0, got {radius}")
     mask = _base_mask_batch(base_mask, B, height, width, pts.device)
-    res = _distance_mask_impl(pts, priority, valid, float(radius), mask)
+    backend = _mask_backend(backend, priority, pts.device)
+    res = _distance_mask_impl(pts, priority, valid, float(radius), mask, backend=backend)
     return res.keep, res.mask
+
+
+def _mask_backend(requested: str | None, priority: torch.Tensor, device) -> str:
+    """The setMask kernel a :func:`distance_mask` call runs (see its ``backend``)."""
+    from .fused import resolve_backend
+
+    integer = priority.dtype in (torch.int32, torch.int64)
+    if requested == "fused" and not integer:
+        raise ConfigError(f"distance_mask: backend='fused' needs an int32 / int64 priority, got {priority.dtype}")
+    if not integer and requested in (None, "auto"):
+        return "tensor"
+    return resolve_backend(requested, device)
 
 
 class DistanceMaskResult(NamedTuple):
@@ -132,7 +151,7 @@ class DistanceMaskResult(NamedTuple):
 
 def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.Tensor, radius: float,
                         mask: torch.Tensor, *, capturable: bool = False,
-                        rounds: int | None = None) -> DistanceMaskResult:
+                        rounds: int | None = None, backend: str = "tensor") -> DistanceMaskResult:
     """:func:`distance_mask` without input checks (the kernel's ``_impl``).
 
     Args:
@@ -140,17 +159,28 @@ def _distance_mask_impl(pts: torch.Tensor, priority: torch.Tensor, valid: torch.
         priority: ``(B, N)`` (track counts), larger first.
         valid: ``(B, N)`` bool.
         radius: disc radius in pixels, >= 0.
-        mask: ``(B, H, W)`` uint8, the base mask (255 = free); written into and returned (pass a
-            copy to keep it).
+        mask: ``(B, H, W)`` uint8, the base mask (255 = free); the tensor kernel writes into it and
+            returns it (pass a copy to keep it). ``backend="fused"``: ``(1 or B, H, W)``, only read
+            (one mask for every stream needs no copy); the result is a new tensor.
         capturable: False: the conflicts are resolved in rounds until done (a host check each).
             True: shape-static, no host syncs, a kernel count independent of B and of the data:
             ``rounds`` rounds (default :data:`MASK_ROUNDS`), see :func:`_distance_mask_capturable`.
+        backend: ``"tensor"`` (this module's kernels, the reference) or ``"fused"`` (the custom op
+            ``torch_frontend::set_mask``, ``fused/mask_op.py``: the sequential VINS loop in one op on
+            both paths; ``priority`` int32 / int64). The same bits; the fused op is exact on the
+            capturable path too, so its ``overflow`` is all False.
 
     Returns:
         A :class:`DistanceMaskResult`: ``keep (B, N)`` bool and ``mask`` as :func:`distance_mask`;
         ``overflow (B,)`` bool with ``capturable`` (True where the rounds left a decision open;
         elsewhere the result equals the default path's), None on the default path (exact).
     """
+    if backend == "fused":
+        keep, out = set_mask_op(pts.detach(), priority, valid, mask, float(radius))
+        overflow = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device) if capturable else None
+        return DistanceMaskResult(keep, out, overflow)
+    if backend != "tensor":
+        raise ConfigError(f"setMask backend must be 'tensor' or 'fused', got {backend!r}")
     if capturable:
         return DistanceMaskResult(*_distance_mask_capturable(pts, priority, valid, float(radius), mask,
                                                              MASK_ROUNDS if rounds is None else int(rounds)))

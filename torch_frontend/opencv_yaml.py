@@ -8,6 +8,10 @@ number-like strings. A key given twice in one map is a ``ConfigError`` naming th
 lines: PyYAML would keep the last value and ``cv2.FileStorage`` keeps the first (measured with
 OpenCV 4.x), so the file means different things to different readers.
 
+:func:`format_opencv_yaml` writes the dialect back (``calibration``: configs from calibration
+files): the header, ``!!opencv-matrix`` blocks, nested maps indented by 3 spaces, floats as the
+shortest text that reads back to the same double.
+
 A foundation module (numpy and PyYAML only): ``config`` and ``camera`` read their files with it.
 """
 
@@ -117,3 +121,71 @@ def read_opencv_yaml(path: Union[str, Path]) -> Dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"expected a mapping at the top level, got {type(data).__name__}", p)
     return _coerce(data, str(p), "")
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+
+
+def _scalar(value: Any, key: str) -> str:
+    """One value as FileStorage writes it: ints, floats (the shortest text that reads back to the
+    same double), double-quoted strings; bools as 0/1 (VINS's flags)."""
+    if isinstance(value, (bool, np.bool_)):
+        return str(int(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if not np.isfinite(v):
+            raise ValueError(f"{key}: expected a finite number, got {v!r}")
+        return repr(v)
+    if isinstance(value, str):
+        if any(c in value for c in '"\\\n'):
+            raise ValueError(f"{key}: a string with a quote, backslash or newline cannot be written, got {value!r}")
+        # an upper-case identifier (model_type: PINHOLE) bare, as VINS's files write it; others quoted
+        return value if re.fullmatch(r"[A-Z][A-Z0-9_]*", value) else f'"{value}"'
+    raise ValueError(f"{key}: cannot write a {type(value).__name__} ({value!r})")
+
+
+def _matrix_lines(m: np.ndarray, key: str) -> list:
+    a = np.asarray(m, dtype=np.float64)
+    if a.ndim == 1:
+        a = a.reshape(-1, 1)
+    if a.ndim != 2 or a.size == 0:
+        raise ValueError(f"{key}: expected a non-empty 2-D matrix, got shape {np.shape(m)}")
+    rows = [", ".join(_scalar(float(v), key) for v in row) for row in a]
+    data = ("data: [" + (",\n       ".join(rows)) + "]").splitlines()
+    return [f"   rows: {a.shape[0]}", f"   cols: {a.shape[1]}", "   dt: d"] + [("   " + ln) for ln in data]
+
+
+def format_opencv_yaml(entries, header=()) -> str:
+    """The text of an OpenCV FileStorage YAML file (what ``cv2.FileStorage`` and
+    :func:`read_opencv_yaml` read back to the same values).
+
+    Args:
+        entries: in order, each ``(key, value)`` or ``(key, value, comment)``, or a string: a
+            comment line (``""``: a blank line). A value is an int, float (written as the
+            shortest text that reads back to the same double), bool (0/1), str (double-quoted),
+            a ``numpy`` 2-D array (``!!opencv-matrix``, ``dt: d``, one row per line) or a dict of
+            such scalars (a nested map, indented by 3 spaces as VINS's files are).
+        header: comment lines after ``%YAML:1.0``.
+
+    Raises:
+        ValueError: a value that cannot be written (not finite, an unknown type), naming its key.
+    """
+    lines = ["%YAML:1.0"] + [f"# {h}" if h else "#" for h in header] + ([""] if header else [])
+    for e in entries:
+        if isinstance(e, str):
+            lines.append(f"# {e}" if e else "")
+            continue
+        key, value = e[0], e[1]
+        comment = f"   # {e[2]}" if len(e) > 2 and e[2] else ""
+        if isinstance(value, np.ndarray):
+            lines.append(f"{key}: !!opencv-matrix{comment}")
+            lines += _matrix_lines(value, key)
+        elif isinstance(value, dict):
+            lines.append(f"{key}:{comment}")
+            lines += [f"   {k}: {_scalar(v, f'{key}.{k}')}" for k, v in value.items()]
+        else:
+            lines.append(f"{key}: {_scalar(value, key)}{comment}")
+    return "\n".join(lines) + "\n"

@@ -39,8 +39,9 @@ Outputs in ``out``:
       ``camera`` to its ``per_stream`` entry: ``pipelines.inputs.stream_config_entry``).
     * ``features_per_frame.png``, ``track_length_hist.png``, ``track_paths.png``: matplotlib (Agg)
       plots; ``track_paths.png`` draws each published track's path in the image (``u, v`` of its
-      published frames; the first 4 streams), coloured by length: dots for a still camera, lines
-      that follow the motion for a moving one.
+      published frames; the first 4 streams), coloured by length (a colour bar per panel: published
+      frames, blue short, red long): dots for a still camera, lines that follow the motion for a
+      moving one.
     * ``tracks/stream<b>/<stamp_ns>.png``: ``viz.draw_tracks`` per published frame per stream
       (``stamp_ns`` zero-padded to 19 digits, so the names sort in time order).
     * with ``bag``: the feature bag(s) (``features.bag`` / a ROS 2 folder; ``io.feature_bag``).
@@ -63,6 +64,8 @@ from ._atomic import (
     StagedFolder,
     atomic_path,
     legacy_temporaries,
+    make_folders,
+    remove_empty_folders,
     replace_dir,
     write_bytes_atomic,
     write_text_atomic,
@@ -203,9 +206,13 @@ class RunRecorder:
         self._marks = (0, 0, [0] * self.B)  # _rows, _lengths, per_frame entries already in chunks
         # created first, so that a file at ``out`` or a read-only place fails before the run; a
         # file at ``out`` is StagedFolder's "is a file, not a folder" (mkdir's would be "File exists")
-        if not os.path.lexists(self.out):
-            self.out.mkdir(parents=True, exist_ok=True)
-        self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS, adopt=adopt)
+        # (the folders made here are removed again, while empty, when the run fails: abort)
+        self._created = make_folders(self.out)
+        try:
+            self._stage: StagedFolder | None = StagedFolder(self.out, "track", LEGACY_OUTPUTS, adopt=adopt)
+        except BaseException:
+            remove_empty_folders(self._created)
+            raise
         if self.write_tracks:
             self._tmp_tracks = self._stage.path / "tracks"
             self._tmp_tracks.mkdir(exist_ok=adopt is not None)
@@ -264,12 +271,14 @@ class RunRecorder:
         return isinstance(exc, KeyboardInterrupt) or bool(getattr(type(exc), "keeps_checkpoints", False))
 
     def abort(self) -> None:
-        """Remove the temporary folder (``out`` is not touched)."""
+        """Remove the temporary folder (``out`` is not touched, unless this recorder created it:
+        then it is removed while empty, with the parents it created)."""
         for w in self._bags:
             w.abort()
         self._bags = []
         if self._stage is not None:
             self._stage.abort()
+            remove_empty_folders(self._created)
         self._stage = None
         self._tmp_tracks = None
         self._pending = None
@@ -576,8 +585,11 @@ class RunRecorder:
         """``track_paths.png``: the published tracks' paths in the image, per stream."""
         from matplotlib import colormaps
         from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.cm import ScalarMappable
         from matplotlib.collections import LineCollection
+        from matplotlib.colors import Normalize
         from matplotlib.figure import Figure
+        from mpl_toolkits.axes_grid1 import make_axes_locatable
 
         cmap = colormaps["coolwarm"]  # blue: short tracks, red: long ones (as the track images)
         cols = self.columns()
@@ -594,11 +606,15 @@ class RunRecorder:
             cuts = np.flatnonzero(ids[1:] != ids[:-1]) + 1
             paths = np.split(uv, cuts) if ids.size else []
             lengths = np.array([len(p) for p in paths], dtype=np.float64)
+            hi = max(2.0, float(lengths.max())) if paths else 2.0
             if paths:
-                hi = max(2.0, float(lengths.max()))
                 ax.add_collection(LineCollection(paths, colors=cmap(lengths / hi), linewidths=1.0))
                 ends = np.stack([p[-1] for p in paths])
                 ax.scatter(ends[:, 0], ends[:, 1], s=4, c=cmap(lengths / hi))
+            # the colour scale: a track's length in published frames (0 .. the longest, at least 2)
+            cax = make_axes_locatable(ax).append_axes("right", size="4%", pad=0.08)  # as tall as the image
+            bar = fig.colorbar(ScalarMappable(norm=Normalize(0.0, hi), cmap=cmap), cax=cax)
+            bar.set_label("track length (published frames)", fontsize=8)
             h, w = self._size if self._size is not None else (1, 1)
             ax.set_xlim(0, w)
             ax.set_ylim(h, 0)  # image rows down

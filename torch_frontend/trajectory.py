@@ -1,4 +1,4 @@
-"""Trajectory files (TUM, VINS CSV, EuRoC ground truth), interpolation, association, SE(3)/Sim(3)
+"""Trajectory files (TUM, VINS CSV, EuRoC ground truth, KITTI), interpolation, association, SE(3)/Sim(3)
 alignment, ATE and synthetic VIO drift.
 
 Convention:
@@ -16,9 +16,15 @@ Convention:
       - ``"euroc"``: EuRoC ``state_groundtruth_estimate0/data.csv``: a ``#timestamp [ns],p_RS_R_x
         [m],...,q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z [],...`` header, then the same first eight
         columns as VINS (OpenVINS's recomputed ground truth uses this layout too).
+      - ``"kitti"``: KITTI odometry ``poses/NN.txt``: 12 space-separated values per line, the
+        3×4 matrix ``[R | t]`` row by row (camera 0 to world), **no time**: line k (0-based,
+        comments not counted) is at ``times[k]`` (the sequence's ``times.txt`` line k, or image
+        k's time); ``read_trajectory`` needs ``times``. ``R`` may be off orthonormal by up to
+        ``QUAT_TOL`` (printed digits); it becomes the nearest quaternion, normalised.
       - ``"auto"``: the first data line decides: commas -> CSV (``vins``/``euroc``, which share the
         column layout: time in **nanoseconds**, then position, then quaternion w-first),
-        whitespace only -> TUM.
+        8 whitespace-separated values -> TUM, 12 -> KITTI; anything else is a ``DataError``
+        naming the formats (``FORMAT_HELP``).
 
       In every format a first line of only non-numbers is taken as a header without ``#`` and
       skipped; blank lines and lines starting with ``#`` or ``%`` are comments.
@@ -46,10 +52,17 @@ PathLike = Union[str, Path]
 #: largest accepted ``| |q| - 1 |`` of a quaternion read from a file (smaller ones are normalised)
 QUAT_TOL = 1e-2
 
-FORMATS = ("auto", "tum", "vins", "euroc")
+FORMATS = ("auto", "tum", "vins", "euroc", "kitti")
+
+#: the trajectory formats read (``read_trajectory``), for messages
+FORMAT_HELP = ("TUM (8 space-separated values: timestamp [s] tx ty tz qx qy qz qw), VINS CSV "
+               "(time_ns,px,py,pz,qw,qx,qy,qz, trailing comma), EuRoC ground-truth CSV (#timestamp [ns],"
+               "p_RS_R_x [m],...: the same first 8 columns), KITTI (12 space-separated values: [R|t] row by "
+               "row, no times: line k pairs with the sequence's times.txt line k, or image k)")
 
 __all__ = [
     "FORMATS",
+    "FORMAT_HELP",
     "QUAT_TOL",
     "Trajectory",
     "add_drift",
@@ -97,13 +110,81 @@ def _ns_to_seconds(tok: str) -> float:
     return float(tok) * 1e-9
 
 
+def _is_header(toks: List[str]) -> bool:
+    """A header line without ``#``: only non-numbers (and no NaN/inf)."""
+    return bool(toks) and not any(_NUM.match(x) or _is_nonfinite(x) for x in toks)
+
+
 def _detect(path: Path, lines: List[str]) -> str:
-    for ln in lines:
+    """``"csv"``, ``"tum"`` or ``"kitti"`` from the first data line (a header line skipped)."""
+    header = False
+    for i, ln in enumerate(lines, start=1):
         s = ln.strip()
         if not s or s.startswith("#") or s.startswith("%"):
             continue
-        return "csv" if "," in s else "tum"
+        if "," in s:
+            toks = [x.strip() for x in s.split(",")]
+            toks = toks[:-1] if toks and toks[-1] == "" else toks
+            if not header and _is_header(toks):
+                header = True
+                continue
+            if len(toks) < 8:
+                raise DataError(f"{path}:{i}: expected at least 8 comma-separated values (VINS/EuRoC CSV: "
+                                f"time_ns,px,py,pz,qw,qx,qy,qz), got {len(toks)}: {s[:80]!r}; the formats read: "
+                                f"{FORMAT_HELP}")
+            return "csv"
+        toks = s.split()
+        if not header and _is_header(toks):
+            header = True
+            continue
+        if len(toks) == 12:
+            return "kitti"
+        if len(toks) != 8:
+            raise DataError(f"{path}:{i}: expected 8 space-separated values (TUM) or 12 (KITTI), got "
+                            f"{len(toks)}: {s[:80]!r}; the formats read: {FORMAT_HELP}")
+        return "tum"
     raise DataError(f"{path}: empty trajectory file (no pose lines)")
+
+
+def _parse_kitti(path: Path, lines: List[str], times) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """KITTI's ``[R|t]`` lines at ``times`` (s); returns as :func:`_parse`."""
+    mats, linenos = [], []
+    for i, ln in enumerate(lines, start=1):
+        s = ln.strip()
+        if not s or s.startswith("#") or s.startswith("%"):
+            continue
+        toks = s.split()
+        if len(toks) != 12 or "," in s:
+            raise DataError(f"{path}:{i}: expected 12 space-separated values (KITTI: r11 r12 r13 tx r21 ... tz), "
+                            f"got {len(s.split())}: {s[:80]!r}")
+        bad = [x for x in toks if not _NUM.match(x)]
+        if bad and not mats and _is_header(toks):
+            continue
+        if bad:
+            what = "NaN or infinite value" if any(_is_nonfinite(x) for x in bad) else "not a number"
+            raise DataError(f"{path}:{i}: {what}: {bad[0]!r}")
+        m = np.asarray([float(x) for x in toks], dtype=np.float64).reshape(3, 4)
+        if not np.isfinite(m).all():
+            raise DataError(f"{path}:{i}: NaN or infinite value")
+        dev = float(np.abs(m[:, :3] @ m[:, :3].T - np.eye(3)).max())
+        if dev > QUAT_TOL or np.linalg.det(m[:, :3]) < 0:
+            raise DataError(f"{path}:{i}: the 3x3 part is not a rotation (R R^T - I off by {dev:.3g}, allowed "
+                            f"{QUAT_TOL:g}; det {np.linalg.det(m[:, :3]):.3g})")
+        mats.append(m)
+        linenos.append(i)
+    if not mats:
+        raise DataError(f"{path}: empty trajectory file (no pose lines)")
+    if times is None:
+        raise DataError(f"{path}: KITTI poses (12 values per line) have no times: give the sequence's times "
+                        f"(line k pairs with times.txt line k, or image k)")
+    tt = np.asarray(times, dtype=np.float64).reshape(-1)
+    if tt.size < len(mats):
+        raise DataError(f"{path}: {len(mats)} KITTI poses but only {tt.size} times (line k pairs with times.txt "
+                        f"line k, or image k): are they this sequence's poses?")
+    a = np.stack(mats)
+    q = R_to_quat(torch.from_numpy(a[:, :, :3].copy())).numpy()
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return tt[:len(mats)].copy(), a[:, :, 3].copy(), q, np.asarray(linenos)
 
 
 def _parse(path: Path, lines: List[str], fmt: str) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -155,8 +236,8 @@ def _parse(path: Path, lines: List[str], fmt: str) -> Tuple[np.ndarray, np.ndarr
     return np.asarray(times, dtype=np.float64), a[:, :3], a[:, 3:], np.asarray(linenos)
 
 
-def read_trajectory(path: PathLike, format: str = "auto", *, sort: bool = False) -> Trajectory:
-    """Read a trajectory file (TUM, VINS CSV or EuRoC ground truth; see the module docstring).
+def read_trajectory(path: PathLike, format: str = "auto", *, sort: bool = False, times=None) -> Trajectory:
+    """Read a trajectory file (TUM, VINS CSV, EuRoC ground truth or KITTI; see the module docstring).
 
     Convention:
         Returns body-to-world poses, ``time (N,)`` float64 seconds (CSV nanoseconds / 1e9),
@@ -164,15 +245,19 @@ def read_trajectory(path: PathLike, format: str = "auto", *, sort: bool = False)
 
     Args:
         path: the file.
-        format: ``"auto"`` (default), ``"tum"``, ``"vins"`` or ``"euroc"``.
+        format: ``"auto"`` (default: from the content), ``"tum"``, ``"vins"``, ``"euroc"`` or ``"kitti"``.
         sort: if False (default) the times must strictly increase in the file (a decreasing time
             usually means a concatenated or corrupt file); if True lines are sorted by time.
             Duplicate times are rejected either way.
+        times: ``(M,)`` seconds of a KITTI file's lines (line k at ``times[k]``; ``M`` >= the number
+            of poses): the sequence's ``times.txt`` or its images' times; ignored by the other
+            formats, which carry their own.
 
     Raises:
         DataError: missing/unreadable/empty file, or a bad line (naming ``file:line``): wrong
             column count, not a number, NaN/inf, quaternion norm off by more than ``QUAT_TOL``,
-            a duplicate or decreasing time.
+            a duplicate or decreasing time; a first line that fits no format (naming them:
+            ``FORMAT_HELP``); a KITTI file without ``times`` or with more lines than times.
         ValueError: unknown ``format``.
     """
     if format not in FORMATS:
@@ -188,7 +273,10 @@ def read_trajectory(path: PathLike, format: str = "auto", *, sort: bool = False)
         raise DataError(f"{path}: cannot read trajectory file: {exc.strerror or exc}") from None
     lines = text.splitlines()
     fmt = _detect(path, lines) if format == "auto" else format
-    time, t, q, linenos = _parse(path, lines, fmt)
+    if fmt == "kitti":
+        time, t, q, linenos = _parse_kitti(path, lines, times)
+    else:
+        time, t, q, linenos = _parse(path, lines, fmt)
     if sort:
         order = np.argsort(time, kind="stable")
         time, t, q, linenos = time[order], t[order], q[order], linenos[order]

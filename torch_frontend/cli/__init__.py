@@ -1,22 +1,25 @@
-"""The ``torch-frontend`` command line: ``track``, ``demo``, ``loop`` and ``vocabulary train``.
+"""The ``torch-frontend`` command line: ``track``, ``demo``, ``loop``, ``vocabulary train``, ``compare``
+and ``config``.
 
 This module does argparse and printing only: each command builds the options of a pipeline from
 its flags, calls the pipeline (``torch_frontend.pipelines``), prints the summary and maps errors to
 exit codes.
 
-``torch-frontend track [CONFIG] (--euroc DIR | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
+``torch-frontend track [CONFIG] (--euroc DIR | --kitti SEQ | --bag PATH | --images DIR [--config FILE] | --rig FILE)...
 --out DIR`` runs the VINS front end on one or more sequences at once (B streams in one batched
 tracker, each with its own config: :func:`_paired_inputs`) and writes
 ``features.csv``, ``features.npz``, ``summary.json``, two plots and ``tracks/`` into ``--out``
 (``pipelines.track.run_track``; see ``torch_frontend.outputs``). ``torch-frontend demo`` does the
 same on the sample EuRoC frames shipped with the package.
 
-``torch-frontend loop [CONFIG] (--euroc DIR | --images DIR | --bag FILE)... --poses FILE... --out DIR
+``torch-frontend loop [CONFIG] (--euroc DIR | --kitti SEQ | --images DIR | --bag FILE)... --poses FILE... --out DIR
 (--vocabulary FILE | --train-vocabulary)`` runs loop closure (VINS's pose graph) on images plus
 their VIO poses and writes the loop-corrected trajectory, the loops, the pose graph, a summary and
 plots (``pipelines.loop.run_loop``, ``torch_frontend.loop.report``); ``torch-frontend demo --loop``
 does the same on a rendered sequence that revisits places (``pipelines.loop.demo_loop``).
-``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``.
+``torch-frontend vocabulary train`` is ``pipelines.vocabulary.run_vocabulary_train``; ``torch-frontend
+config --from-kalibr camchain.yaml [--imu imu.yaml] --out FILE`` (or ``--from-camera-info``) writes a
+VINS config from calibration files (``pipelines.make_config``, ``torch_frontend.calibration``).
 
 Under ``torchrun`` (``torchrun --nproc-per-node N -m torch_frontend track|loop|vocabulary train
 ...``) every rank runs the command on its block of the inputs (``pipelines.sharded``): each rank on
@@ -29,7 +32,8 @@ or the user set ``OMP_NUM_THREADS`` / ``MKL_NUM_THREADS`` (:func:`_thread_policy
 itself never changes the process's threads), and restore the previous counts afterwards.
 
 User errors (missing or unreadable input, a bad config, a bag without the topic, an image of the
-wrong size, an empty sequence, a bad option value) print one line ``torch-frontend: error: ...`` on
+wrong size, an empty sequence, a bad option value; a corrupt frame's line names ``--skip-bad-frames``)
+print one line ``torch-frontend: error: ...`` on
 stderr and exit with a non-zero code: 2 for usage, option and config errors, 1 for data errors,
 130 when interrupted (Ctrl-C, SIGINT), 143 on SIGTERM. A pipeline's ``OptionError`` names its
 option; the line names the flag. Under ``torchrun`` an error every rank meets is printed by rank 0
@@ -82,7 +86,12 @@ def _option_message(exc: OptionError, flags: Dict[str, str]) -> str:
     msg = str(exc)
     flag = flags.get(exc.option)
     msg = flag + msg[len(exc.option):] if flag and msg.startswith(exc.option) else msg
-    # an option named inside the message (library style: in backticks) -> its flag
+    return _flags_in(msg, flags)
+
+
+def _flags_in(msg: str, flags: Dict[str, str]) -> str:
+    """Every option named in ``msg`` in backticks (the library's style: "`skip_bad_frames` skips
+    unreadable frames") replaced by the command's flag; other backticked words are kept."""
     return re.sub(r"`([a-z_]+)`", lambda m: flags.get(m.group(1), m.group(0)), msg)
 
 
@@ -139,19 +148,21 @@ def _interrupt_signals():
 
 @contextlib.contextmanager
 def _config_warnings():
-    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") as one stderr line
+    """A config's ``ConfigWarning`` (an unknown key, "did you mean ...?") and the poses'
+    ``WorldFrameWarning`` (loop closure's up axis) as one stderr line
     ``torch-frontend: warning: ...`` and an input's ``DataWarning`` (colour frames made grey) as
     ``torch-frontend: note: ...`` inside the block; other warnings as Python prints them."""
     import warnings
 
-    from ..errors import ConfigWarning, DataWarning
+    from ..errors import ConfigWarning, DataWarning, WorldFrameWarning
 
     shown = warnings.showwarning
     rank = _rank()
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, ConfigWarning):
-            if rank == 0:  # under torchrun every rank reads the config: rank 0 says it once
+        if issubclass(category, (ConfigWarning, WorldFrameWarning)):
+            # under torchrun every rank reads the config: rank 0 says it once; a rank's own poses: that rank
+            if rank == 0 or issubclass(category, WorldFrameWarning):
                 print(f"torch-frontend: warning: {message}", file=sys.stderr)
         elif issubclass(category, DataWarning):
             print(f"torch-frontend: note: {message}", file=sys.stderr)
@@ -193,10 +204,10 @@ def main(argv: List[str] | None = None) -> int:
         error(exc, _option_message(exc, getattr(args, "flags", {})))
         return EXIT_USAGE
     except RankFailure as exc:
-        error(exc, f"{exc}; no merged summary written")
+        error(exc, _flags_in(f"{exc}; no merged summary written", getattr(args, "flags", {})))
         return exc.exit_code
-    except DataError as exc:
-        error(exc, str(exc))
+    except DataError as exc:  # an option named in backticks (`skip_bad_frames`, `fps`) -> its flag
+        error(exc, _flags_in(str(exc), getattr(args, "flags", {})))
         return EXIT_DATA
     except JobAborted as exc:
         if not exc.quiet:

@@ -13,8 +13,9 @@ from .common import SAMPLE_DIR, _rank, _UsageError, default_config_path
 # printing
 
 
-def format_summary(s: Dict[str, Any]) -> str:
-    """The few lines ``track``/``demo`` print (``s``: the summary of ``run_track``)."""
+def format_summary(s: Dict[str, Any], tracks: bool = True) -> str:
+    """The few lines ``track``/``demo`` print (``s``: the summary of ``run_track``; ``tracks``:
+    whether the run drew ``tracks/``, i.e. not ``--no-tracks``)."""
     lines = [
         f"streams       {s['streams']}   frames {s['frames']}   steps {s.get('steps', '?')}   "
         f"published frames {s['published']}",
@@ -34,12 +35,13 @@ def format_summary(s: Dict[str, Any]) -> str:
     if dist:
         lines.append(f"ranks         {dist['world_size']} ({dist['backend']}): "
                      + ", ".join(f"rank {r['rank']} {len(r['streams'])} streams" for r in dist["ranks"]))
+    t = ", tracks/" if tracks else ""
     if "out" in s and dist:
         lines.append(f"outputs       {s['out']}/ (stream<b>/ per input: features.csv, features.npz, summary.json, "
-                     f"plots, tracks/; index.json, summary.json)")
+                     f"plots{t}; index.json, summary.json)")
     elif "out" in s:
         lines.append(f"outputs       {s['out']}/ (features.csv, features.npz, summary.json, "
-                     f"features_per_frame.png, track_length_hist.png, track_paths.png, tracks/)")
+                     f"features_per_frame.png, track_length_hist.png, track_paths.png{t})")
     return "\n".join(lines)
 
 
@@ -85,7 +87,7 @@ def _progress(args: argparse.Namespace):
 
 
 def _flag(source) -> str:
-    """A source as the command line names it (``--euroc DIR``)."""
+    """A source as the command line names it (``--euroc DIR``, ``--kitti SEQ``)."""
     return f"--{source[0]} {source[1]}"
 
 
@@ -116,7 +118,7 @@ def _paired_inputs(args: argparse.Namespace) -> Tuple[List[Tuple], Any]:
                 leading = Path(value)
             elif last != "input":
                 raise _UsageError(f"--config {value} after --rig {last}: a rig file's inputs name their own "
-                                  f"config (its 'config:' key); a --config applies to the --euroc/--bag/--images "
+                                  f"config (its 'config:' key); a --config applies to the --euroc/--kitti/--bag/--images "
                                   f"input just before it")
             elif own[-1] is not None:
                 raise _UsageError(f"--config {value}: input {len(sources)} ({_flag(sources[-1])}) already has "
@@ -156,10 +158,10 @@ def _check_inputs(config, sources: Sequence[Tuple], kinds: str) -> None:
         raise _UsageError(f"no input: give at least one {kinds}")
     per = list(config) if isinstance(config, list) else [config] * len(sources)
     for b, (src, c) in enumerate(zip(sources, per)):
-        if c is None and src[0] != "euroc":
+        if c is None and src[0] not in ("euroc", "kitti"):
             raise _UsageError(f"no CONFIG given for input {b + 1} ({_flag(src)}): a VINS config file is needed "
-                              f"unless an --euroc folder provides sensor.yaml (give CONFIG, or --config FILE "
-                              f"after this input)")
+                              f"unless an --euroc folder provides sensor.yaml or a --kitti sequence calib.txt "
+                              f"(give CONFIG, or --config FILE after this input)")
 
 
 def _sharded() -> bool:
@@ -203,7 +205,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from ..pipelines.track import TrackOptions, run_track
 
     sources, config = _paired_inputs(args)
-    _check_inputs(config, sources, "--euroc DIR, --bag PATH, --images DIR or --rig FILE")
+    _check_inputs(config, sources, "--euroc DIR, --kitti SEQ, --bag PATH, --images DIR or --rig FILE")
     opt = TrackOptions(**_input_options(args), mode=args.mode, write_tracks=not args.no_tracks,
                        bag=args.write_bag, bag_format=args.bag_format, bag_images=args.bag_images,
                        bag_imu=not args.no_bag_imu, checkpoint_every=args.checkpoint_every, resume=args.resume,
@@ -214,29 +216,46 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
         summary = run_track_sharded(config, sources, args.out, opt, timeout=args.timeout)
         if summary is not None:  # rank 0
-            print(format_summary(summary))
+            print(format_summary(summary, tracks=not args.no_tracks))
         return 0
-    print(format_summary(run_track(config, sources, args.out, opt)))
+    print(format_summary(run_track(config, sources, args.out, opt), tracks=not args.no_tracks))
     return 0
+
+
+def _world_defaults(args: argparse.Namespace, sources: Sequence[Tuple]) -> Tuple[str, str, str]:
+    """``(pose graph mode, up axis, why)`` of ``loop``: ``--pose-graph`` / ``--up`` as given, else
+    6dof when an input is ``--kitti`` (no IMU, as VINS-Fusion with ``imu: 0``) and ``-y`` when
+    every input is (KITTI's camera-0 world: y down), else 4dof and ``+z``; ``why`` says which
+    default came from ``--kitti`` (empty when none did)."""
+    kitti = [s[0] == "kitti" for s in sources]
+    mode = args.pose_graph or ("6dof" if any(kitti) else "4dof")
+    up = args.up or ("-y" if kitti and all(kitti) else "+z")
+    why = [w for w, derived in (("--kitti: no IMU, 6dof", args.pose_graph is None and any(kitti)),
+                                ("--kitti: camera-0 world, y down", args.up is None and kitti and all(kitti)))
+           if derived]
+    return mode, up, "; ".join(why)
 
 
 def _cmd_loop(args: argparse.Namespace) -> int:
     from ..pipelines.loop import LoopOptions, run_loop
 
     sources, config = _paired_inputs(args)
-    _check_inputs(config, sources, "--euroc DIR, --images DIR, --bag FILE or --rig FILE")
+    _check_inputs(config, sources, "--euroc DIR, --kitti SEQ, --images DIR, --bag FILE or --rig FILE")
     if args.vocabulary is None and not args.train_vocabulary:
         raise _UsageError("no vocabulary: give --vocabulary FILE (VINS's brief_k10L6.bin, or a .npz from "
                           "'torch-frontend vocabulary train') or --train-vocabulary")
+    mode, up, why = _world_defaults(args, sources)
     opt = LoopOptions(
         **_input_options(args), vocabulary=args.vocabulary, train_vocabulary=args.train_vocabulary,
         vocabulary_k=args.train_k, vocabulary_L=args.train_L, load_graph=args.load_graph,
-        separate_graphs=args.separate_graphs, mode=args.pose_graph, tracker_mode=args.tracker_mode,
+        separate_graphs=args.separate_graphs, mode=mode, up=up, tracker_mode=args.tracker_mode,
         keyframe_distance=args.keyframe_distance, keyframe_angle=args.keyframe_angle,
         keyframe_every=args.keyframe_every, max_pose_gap=args.max_pose_gap, pnp_backend=args.pnp,
         checkpoint_every=args.checkpoint_every, resume=args.resume,
     )
     config = _resolved_config(config, sources, opt)
+    if _rank() == 0:
+        print(f"pose graph    {mode}, up {up}" + (f" ({why})" if why else ""), flush=True)
     if _sharded():
         from ..pipelines.sharded import run_loop_sharded
 
@@ -277,7 +296,7 @@ def _cmd_demo_flight(args: argparse.Namespace) -> int:
     print(cfg.settings_line())
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
-    print(format_summary(run_track(cfg, sources, out, opt)))
+    print(format_summary(run_track(cfg, sources, out, opt), tracks=not args.no_tracks))
     return 0
 
 
@@ -298,7 +317,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"\nsample        {SAMPLE_DIR} (cam0)")
     opt = TrackOptions(device=args.device or "cpu", mode=args.mode, max_frames=args.max_frames,
                        write_tracks=not args.no_tracks, progress=_progress(args), lk_backend=args.lk_backend)
-    print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt)))
+    print(format_summary(run_track(cfg, [("euroc", str(SAMPLE_DIR))], args.out, opt), tracks=not args.no_tracks))
     return 0
 
 
@@ -328,4 +347,73 @@ def _cmd_vocabulary(args: argparse.Namespace) -> int:
         s = run_vocabulary_train(args.images, args.out, opt)
     print(f"vocabulary    {s['words']} words (k={s['k']}, L={s['L']}) from {s['descriptors']} descriptors "
           f"of {s['images']} images in {s['seconds']:.2f} s -> {s['out']}")
+    return 0
+
+
+def format_ros_summary(s: Dict[str, Any]) -> str:
+    """The lines ``ros`` prints on exit (``s``: the summary of ``pipelines.ros_node.run_ros_node``)."""
+
+    def lat(d: Dict[str, Any]) -> str:
+        if not d["n"]:
+            return "none"
+        return f"median {d['median']:.1f} ms, p95 {d['p95']:.1f} ms, max {d['max']:.1f} ms ({d['n']} frames)"
+
+    lines = [f"cameras       {len(s['cameras'])}   steps {s['steps']}   cameras per step "
+             f"{s['cameras_per_step'] if s['cameras_per_step'] is not None else '-'}   ({s['seconds']:.1f} s on "
+             f"{s['device']}, {s['lk_backend']} LK)",
+             f"frames        received {s['received']}, tracked {s['tracked']}, dropped {s['dropped']} (queue "
+             f"{s['queue_size']} per camera, the newest kept; sync wait {s['sync_wait_ms']:g} ms)",
+             f"latency       image received -> feature published: {lat(s['latency_ms'])}"]
+    for c in s["cameras"]:
+        lines.append(f"  {c['topic']} -> {c['outputs']}: {c['received']} received, {c['tracked']} tracked, "
+                     f"{c['dropped']} dropped, {c['feature_messages']} feature messages, {c['restarts']} restarts")
+    return "\n".join(lines)
+
+
+def _cmd_ros(args: argparse.Namespace) -> int:
+    """``ros``: configs and rospy's remapping arguments (``name:=value``) from the positionals."""
+    from ..pipelines.ros_node import RosCamera, RosOptions, run_ros_node
+
+    remap = [a for a in args.configs if ":=" in a]
+    cams = []
+    for a in args.configs:
+        if ":=" in a:
+            continue
+        path, topic = a, None
+        if "@" in a and not Path(a).is_file():
+            path, topic = a.rsplit("@", 1)
+            if not topic:
+                raise _UsageError(f"{a}: expected CONFIG@TOPIC, got an empty topic")
+        cams.append(RosCamera(Path(path), topic))
+    if not cams:
+        raise _UsageError("no CONFIG given (only remapping arguments: " + " ".join(remap) + ")")
+    for c in cams:
+        if not c.config.is_file():
+            raise _UsageError(f"config file not found: {c.config}")
+    opt = RosOptions(device=_device(args), lk_backend=args.lk_backend, queue_size=args.queue_size,
+                     sync_wait=args.sync_wait / 1e3, latency=args.latency,
+                     summary=None if args.summary is None else str(args.summary), remap=remap,
+                     max_frames=args.max_frames)
+
+    def ready(node) -> None:
+        seen = []
+        for cfg in node.cfgs:  # the settings of each distinct config, as track prints them
+            if not any(cfg is c for c in seen):
+                seen.append(cfg)
+                print(cfg.settings_line(), flush=True)
+        names = ", ".join(f"{t} -> {node.rospy.names.resolve_name(p + 'feature')}"
+                          for t, p in zip(node.topics, node.prefixes))
+        import rosgraph
+
+        print(f"ros           node {node.rospy.get_name()} (master {rosgraph.get_master_uri()}): {names}", flush=True)
+
+    print(format_ros_summary(run_ros_node(cams, opt, ready=ready)))
+    return 0
+
+
+def _cmd_config(args: argparse.Namespace) -> int:
+    from ..pipelines.make_config import format_make_config, run_make_config
+
+    print(format_make_config(run_make_config(args.out, kalibr=args.from_kalibr, camera_info=args.from_camera_info,
+                                             imu=args.imu)))
     return 0

@@ -7,11 +7,12 @@ import argparse
 import math
 from pathlib import Path
 
-from .commands import _cmd_compare, _cmd_demo, _cmd_loop, _cmd_track, _cmd_vocabulary
+from ..loop.world import UP_AXES
+from .commands import _cmd_compare, _cmd_config, _cmd_demo, _cmd_loop, _cmd_ros, _cmd_track, _cmd_vocabulary
 
 # option name of a pipeline -> the flag that sets it, per command (for OptionError messages)
 _INPUT_FLAGS = {"max_frames": "--max-frames", "device": "--device", "fps": "--fps", "topic": "--topic",
-                "camera": "--camera", "workers": "--workers"}
+                "camera": "--camera", "workers": "--workers", "skip_bad_frames": "--skip-bad-frames"}
 _TRACK_FLAGS = {**_INPUT_FLAGS, "mode": "--mode", "bag": "--write-bag", "bag_format": "--bag-format",
                 "checkpoint_every": "--checkpoint-every", "resume": "--resume", "lk_backend": "--lk-backend"}
 _DEMO_FLAGS = {"max_frames": "--max-frames", "device": "--device", "mode": "--mode", "tracker_mode": "--mode",
@@ -22,8 +23,11 @@ _LOOP_FLAGS = {
     "load_graph": "--load-graph", "separate_graphs": "--separate-graphs", "mode": "--pose-graph",
     "tracker_mode": "--tracker-mode", "keyframe_distance": "--keyframe-distance",
     "keyframe_angle": "--keyframe-angle", "keyframe_every": "--keyframe-every", "max_pose_gap": "--max-pose-gap",
-    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume",
+    "pnp_backend": "--pnp", "checkpoint_every": "--checkpoint-every", "resume": "--resume", "up": "--up",
 }
+_ROS_FLAGS = {"device": "--device", "lk_backend": "--lk-backend", "queue_size": "--queue-size",
+              "sync_wait": "--sync-wait", "max_frames": "--max-frames", "cameras": "CONFIG"}
+_CONFIG_FLAGS = {"kalibr": "--from-kalibr", "camera_info": "--from-camera-info", "imu": "--imu", "out": "--out"}
 _VOCABULARY_FLAGS = {"out": "--out", "k": "--k", "L": "--L", "fast_threshold": "--fast-threshold",
                      "max_images": "--max-images", "max_keypoints": "--max-keypoints", "seed": "--seed",
                      "device": "--device"}
@@ -120,6 +124,11 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
                      help="ROS 1 .bag file or ROS 2 bag folder (sensor_msgs/Image or CompressedImage)")
     src.add_argument("--images", dest="sources", action=_SourceAction, const="images", metavar="DIR",
                      help="folder of images (timestamps from numeric names, or --fps)")
+    src.add_argument("--kitti", dest="sources", action=_SourceAction, const="kitti", metavar="SEQ",
+                     help="KITTI odometry sequence (sequences/NN: image_0/, calib.txt, times.txt) or raw drive "
+                          "(*_sync: image_00/, calib_cam_to_cam.txt); no config needed: the camera from P0 "
+                          "(--camera cam1..cam3: P1..P3), VINS-Mono's front-end defaults, which a --config "
+                          "after it replaces (its front-end keys; docs/datasets.md)")
     src.add_argument("--config", dest="sources", action=_SourceAction, const="config", metavar="FILE",
                      help="VINS config of the input just before it (--euroc A --config a.yaml --euroc B "
                           "--config b.yaml: each stream its own camera, size and settings); inputs without "
@@ -134,7 +143,7 @@ def _add_input_options(p: argparse.ArgumentParser, title: str):
     p.add_argument("--topic", default=None, metavar="T",
                    help="image topic of --bag inputs (default: the config's image_topic)")
     p.add_argument("--camera", default="cam0", metavar="CAM",
-                   help="camera folder of --euroc inputs (default: cam0)")
+                   help="camera folder of --euroc inputs, camera of --kitti inputs (default: cam0)")
     p.add_argument("--skip-bad-frames", action="store_true",
                    help="skip unreadable/corrupt frames instead of stopping (counted in summary.json)")
     p.add_argument("--workers", type=_non_negative_int, default=0, metavar="N",
@@ -159,7 +168,7 @@ def _add_track(sub) -> None:
     track.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                        help="VINS config YAML (VINS-Mono or VINS-Fusion) of every input without its own "
                             "--config; optional with --euroc, whose own sensor.yaml then gives each "
-                            "folder's camera")
+                            "folder's camera, and with --kitti (calib.txt)")
     _add_input_options(track, "inputs (repeatable, at least one)")
     _add_run_options(track, None)
     rb = track.add_argument_group("ROS bag output (docs/ros.md)")
@@ -231,12 +240,13 @@ def _add_loop(sub) -> None:
     )
     loop.add_argument("config", nargs="?", type=Path, default=None, metavar="CONFIG",
                       help="VINS config YAML (camera and camera-to-body extrinsic) of every input without its "
-                           "own --config; optional with --euroc, whose own sensor.yaml then gives both (a shared "
+                           "own --config; optional with --euroc, whose own sensor.yaml then gives both, and with "
+                           "--kitti (calib.txt; body = camera 0) (a shared "
                            "map needs one extrinsic: inputs with different ones need --separate-graphs)")
     lsrc = _add_input_options(loop, "inputs (repeatable, at least one; one --poses per input)")
     lsrc.add_argument("--poses", action="append", metavar="FILE",
-                      help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, or EuRoC "
-                           "ground truth (format detected)")
+                      help="VIO body poses of the input: VINS csv (vins_result_no_loop.csv), TUM, EuRoC "
+                           "ground truth or KITTI (poses/NN.txt: line k at the input's image k; format detected)")
     lsrc.add_argument("--ground-truth", action="append", default=None, metavar="FILE",
                       help="reference trajectory of the input (any of the same formats): ATE before/after")
     voc = loop.add_mutually_exclusive_group()
@@ -253,8 +263,13 @@ def _add_loop(sub) -> None:
                       help="start from a saved pose graph (VINS format, e.g. an earlier run's pose_graph/)")
     loop.add_argument("--separate-graphs", action="store_true",
                       help="one pose graph per input instead of one shared map (VINS's multi-sequence merge)")
-    loop.add_argument("--pose-graph", choices=("4dof", "6dof"), default="4dof",
-                      help="4dof: VIO with IMU (x, y, z, yaw), 6dof: without IMU (default: 4dof)")
+    loop.add_argument("--pose-graph", choices=("4dof", "6dof"), default=None,
+                      help="4dof: VIO with IMU (x, y, z, yaw about --up), 6dof: without IMU (default: 4dof; "
+                           "6dof when an input is --kitti, which has no IMU)")
+    loop.add_argument("--up", choices=UP_AXES, default=None,
+                      help="the poses' world axis that points up (against gravity): the 4dof graph's yaw axis and "
+                           "the plots' viewing axis (default: +z; -y when every input is --kitti, whose camera-0 "
+                           "world has y down)")
     loop.add_argument("--keyframe-distance", type=float, default=0.2, metavar="M",
                       help="new keyframe when the body moved more than M metres ... (default: 0.2)")
     loop.add_argument("--keyframe-angle", type=float, default=10.0, metavar="DEG",
@@ -303,6 +318,54 @@ def _add_compare(sub) -> None:
                                                 "num_cameras": "--num-cameras"})
 
 
+def _non_negative_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {s}")
+    return v
+
+
+def _add_ros(sub) -> None:
+    """``ros``: the live ROS 1 node (``pipelines.ros_node``)."""
+    ros = sub.add_parser(
+        "ros",
+        help="live ROS 1 node: VINS-Mono's feature_tracker_node for one or more cameras (docs/ros.md)",
+        description="Subscribe to each camera's image topic and publish VINS's feature, feature_img and restart "
+                    "topics live (the master from ROS_MASTER_URI). One CONFIG: /feature_tracker/feature, "
+                    "/feature_tracker/feature_img, /feature_tracker/restart, as VINS-Mono's node; several: one "
+                    "batched tracker, each camera's topics under its image topic's namespace "
+                    "(/cam0/image_raw -> /cam0/feature_tracker/feature). Runs until Ctrl-C or SIGTERM (exit 0) "
+                    "and prints a summary (frames, drops, latency). ROS remapping arguments (name:=value, "
+                    "__ns:=NS, __name:=NAME) go to rospy.",
+        epilog="example: torch-frontend ros configs/euroc.yaml   (beside rosrun vins_estimator ...; "
+               "two cameras: torch-frontend ros a.yaml@/cam0/image_raw a.yaml@/cam1/image_raw)",
+    )
+    ros.add_argument("configs", nargs="+", metavar="CONFIG",
+                     help="VINS-Mono config of a camera, subscribed to its image_topic; CONFIG@TOPIC: to TOPIC "
+                          "instead (one config for several cameras)")
+    ros.add_argument("--device", default=None, help="cpu or cuda (default: cpu)")
+    ros.add_argument("--lk-backend", choices=("auto", "fused", "tensor"), default=None,
+                     help="the pyramid's and the LK's kernels (default auto; docs/kernels.md)")
+    ros.add_argument("--queue-size", type=_positive_int, default=4, metavar="N",
+                     help="frames queued per camera at most; a frame arriving at a full queue drops the oldest "
+                          "(default: 4)")
+    ros.add_argument("--sync-wait", type=_non_negative_float, default=0.0, metavar="MS",
+                     help="with several cameras: a step waits up to MS milliseconds for every camera to have a "
+                          "frame (default: 0, step with the cameras that have one)")
+    ros.add_argument("--latency", action="store_true",
+                     help="publish each frame's latency on <prefix>/latency (std_msgs/Float64MultiArray: stamp_sec, "
+                          "stamp_nsec, latency_ms, median_ms, p95_ms, max_ms, dropped, sent, restarted)")
+    ros.add_argument("--summary", type=Path, default=None, metavar="FILE",
+                     help="also write the exit summary as JSON into FILE")
+    ros.add_argument("--max-frames", type=_positive_int, default=None, metavar="N",
+                     help="stop after N tracked frames in all (default: until stopped)")
+    _add_threads(ros)
+    ros.set_defaults(func=_cmd_ros, flags=_ROS_FLAGS)
+
+
 def _add_vocabulary(sub) -> None:
     """``vocabulary train``."""
     vocab = sub.add_parser(
@@ -340,12 +403,38 @@ def _add_vocabulary(sub) -> None:
     vocab.set_defaults(func=_cmd_vocabulary, flags=_VOCABULARY_FLAGS)
 
 
+def _add_config(sub) -> None:
+    """``config``: a VINS config from calibration files."""
+    cfg = sub.add_parser(
+        "config",
+        help="write a VINS config from a Kalibr camchain or a ROS camera_info YAML",
+        description="Write a VINS config from calibration files: one camera gives a VINS-Mono config, two a "
+                    "VINS-Fusion config (FILE and FILE_cam0.yaml, FILE_cam1.yaml beside it). Kalibr pinhole-radtan "
+                    "-> PINHOLE, pinhole-equi -> KANNALA_BRANDT, omni-radtan -> MEI (ds, eucm and fov have no "
+                    "camodocal model: refused); camchain-imucam.yaml's T_cam_imu becomes VINS's body <- camera "
+                    "extrinsic; camera_info: plumb_bob (k3 = 0) -> PINHOLE, equidistant -> KANNALA_BRANDT. Every "
+                    "other key at VINS's defaults. A file that exists is replaced only when this command wrote it.",
+        epilog="example: torch-frontend config --from-kalibr camchain-imucam.yaml --imu imu.yaml --out my_vins.yaml",
+    )
+    src = cfg.add_mutually_exclusive_group(required=True)
+    src.add_argument("--from-kalibr", type=Path, default=None, metavar="CAMCHAIN",
+                     help="Kalibr's camchain.yaml or camchain-imucam.yaml (1 or 2 cameras)")
+    src.add_argument("--from-camera-info", type=Path, default=None, metavar="YAML",
+                     help="a ROS camera_calibration camera_info YAML (ost.yaml; one camera)")
+    cfg.add_argument("--imu", type=Path, default=None, metavar="IMU_YAML",
+                     help="Kalibr's imu.yaml: the IMU noise (acc_n, gyr_n, acc_w, gyr_w) and imu_topic "
+                          "(default: VINS's EuRoC values)")
+    cfg.add_argument("--out", type=Path, default=Path("vins_config.yaml"), metavar="FILE",
+                     help="the config file to write (default: vins_config.yaml)")
+    cfg.set_defaults(func=_cmd_config, flags=_CONFIG_FLAGS)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="torch-frontend",
         description="Batched, differentiable VINS-Mono visual front end (KLT tracker) in PyTorch.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare):
+    for add in (_add_track, _add_demo, _add_loop, _add_vocabulary, _add_compare, _add_ros, _add_config):
         add(sub)
     return parser

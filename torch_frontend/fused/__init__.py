@@ -32,7 +32,7 @@ from ..errors import ConfigError
 from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
 
 __all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
-           "MIN_FUSED_WIDTH", "resolve_corner_backend"]
+           "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_corner_backend"]
 
 #: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
 BACKENDS = ("auto", "fused", "tensor")
@@ -50,7 +50,7 @@ def _probe(kind: str) -> Optional[str]:
         try:
             import numba  # noqa: F401
 
-            from . import _numba_lk, _numba_pyramid  # noqa: F401
+            from . import _numba_lk, _numba_mask, _numba_pyramid  # noqa: F401
         except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor LK
             return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
         return None
@@ -60,7 +60,7 @@ def _probe(kind: str) -> Optional[str]:
         try:
             import triton  # noqa: F401
 
-            from . import _triton_lk, _triton_pyramid  # noqa: F401
+            from . import _triton_lk, _triton_mask, _triton_pyramid  # noqa: F401
         except Exception as e:  # noqa: BLE001
             return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
         from .selfcheck import cuda_selfcheck
@@ -113,6 +113,59 @@ def resolve_backend(requested: Optional[str], device) -> str:
         raise ConfigError(f"lk_backend='fused' cannot run on {dev.type}: {why}")
     warn_once(f"torch_frontend: the fused LK cannot run on {dev.type} ({why}); the tensor LK runs instead "
               "(the same results up to OpenCV's float summation order, docs/kernels.md)")
+    return "tensor"
+
+
+# ---------------------------------------------------------------------------------------------
+# CLAHE (``fused/clahe_op.py``): its own probe, so that the LK's availability does not hide its modules'
+
+_CLAHE_STATUS: dict = {}  # device kind -> None (available) or why not
+
+
+def clahe_unavailable_reason(device) -> Optional[str]:
+    """Why the fused CLAHE cannot run on ``device``, or None when it can (probed once per device type:
+    the fused kernels' availability, :func:`unavailable_reason`, and the CLAHE kernels' modules)."""
+    kind = torch.device(device).type
+    with _LOCK:
+        if kind in _CLAHE_STATUS:
+            return _CLAHE_STATUS[kind]
+    why = unavailable_reason(device)
+    if why is None and (kind == "cpu" or (kind == "cuda" and torch.cuda.is_available())):
+        try:
+            if kind == "cpu":
+                from . import _numba_clahe  # noqa: F401
+            else:
+                from . import _triton_clahe  # noqa: F401
+        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor CLAHE
+            why = f"the CLAHE kernel cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+    with _LOCK:
+        _CLAHE_STATUS.setdefault(kind, why)
+        return _CLAHE_STATUS[kind]
+
+
+def resolve_clahe_backend(requested: Optional[str], device) -> str:
+    """The CLAHE backend (``"fused"``: ``torch_frontend::clahe``, or ``"tensor"``: ``equalize``'s tensor
+    CLAHE) a call on ``device`` runs for ``requested``, as :func:`resolve_backend`: ``None`` / ``"auto"``:
+    the device's ``_tuning`` strategy (``Strategy.clahe_backend``), falling back to the tensor CLAHE with
+    one warning where the fused kernel cannot run; ``"fused"``: the fused kernel or a ``ConfigError``
+    saying why not; ``"tensor"``: the tensor CLAHE. Both give OpenCV's bits."""
+    from .. import _tuning
+
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"clahe_backend must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and _tuning.for_device(dev).clahe_backend != "fused":
+        return "tensor"
+    why = clahe_unavailable_reason(dev)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"clahe_backend='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused CLAHE cannot run on {dev.type} ({why}); the tensor CLAHE runs instead "
+              "(the same bits, docs/kernels.md)")
     return "tensor"
 
 

@@ -545,11 +545,11 @@ def _ptx_only_hook(*args):
 
 
 def ptx_sm90() -> Dict[str, str]:
-    """The PTX of every Triton kernel of the fused LK and pyramid, compiled for sm_90 without a GPU.
+    """The PTX of every Triton kernel of the fused LK, pyramid and CLAHE, compiled for sm_90 without a GPU.
 
     Compiled with the launchers' options (``enable_fp_fusion=False``, their ``num_warps``) and
-    constexprs (a 21 x 21 window), one entry per LK variant (see ``_LK_VARIANTS``) and per pyramid
-    kernel. Must run in a process without ``TRITON_INTERPRET`` (it replaces ``@triton.jit``).
+    constexprs (a 21 x 21 window), one entry per LK variant (see ``_LK_VARIANTS``), per pyramid
+    kernel and per setMask kernel (``_triton_mask.KERNELS``). Must run in a process without ``TRITON_INTERPRET`` (it replaces ``@triton.jit``).
     """
     from triton.backends.compiler import GPUTarget
 
@@ -583,6 +583,17 @@ def _compile_all(target, out: Dict[str, str]) -> None:
                         constexprs={"BLOCK": _triton_pyramid._BLOCK})
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_pyramid._NUM_WARPS}).asm["ptx"]
+    from . import _triton_clahe
+
+    for name, kern in _triton_clahe.KERNELS.items():
+        src = ASTSource(fn=kern, signature=_triton_clahe.SIGNATURES[name], constexprs={"BLOCK": _triton_clahe._BLOCK})
+        out[name] = triton.compile(src, target=target, options={
+            **_COMPILE_OPTIONS, "num_warps": _triton_clahe._NUM_WARPS}).asm["ptx"]
+    from . import _triton_mask
+
+    for name, (kern, sig, consts, warps) in _triton_mask.KERNELS.items():
+        src = ASTSource(fn=kern, signature=sig, constexprs=consts)
+        out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS, "num_warps": warps}).asm["ptx"]
     from . import _triton_corners  # detection: the response and the candidates' keys
 
     for name, kern in _triton_corners.KERNELS.items():

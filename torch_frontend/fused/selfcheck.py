@@ -5,7 +5,7 @@ own rounding: a compiler that contracted ``a * b + c`` into an FMA, an approxima
 root, a flush-to-zero would change bits only on the GPU. Before the fused CUDA kernels are used on a
 device, :func:`cuda_selfcheck` runs them on :func:`case` (two synthetic 8-bit frames, a shift of a few
 pixels, points inside, at the edge, outside, invalid, with an initial guess, with the forward-backward
-check) and compares every output bit with :data:`EXPECTED`, which the CPU kernels produced
+check; CLAHE of both frames; setMask on those points) and compares every output bit with :data:`EXPECTED`, which the CPU kernels produced
 (``tests/test_fused.py`` holds the two equal). Any difference: the fused backend is refused on CUDA,
 with the reason, and the tensor kernels run (one warning, ``fused.resolve_backend``). It runs once per
 process, at the first resolution of the backend on CUDA (tracker construction, a ``track_lk`` call),
@@ -28,7 +28,7 @@ __all__ = ["case", "digest", "cuda_selfcheck", "EXPECTED", "run_case", "corners_
 
 #: sha256 of the CPU kernels' outputs on :func:`case` (regenerate with ``python -m torch_frontend.fused.selfcheck``
 #: after a change to the kernels that is meant to move bits; tests/test_fused.py checks it)
-EXPECTED = "c22ce355b2e5542a18969a10f2de304ea7f356f7f5faa5913f555d4ee36f3322"
+EXPECTED = "7fb7e81dfab8bb9802fcf74398b3ba535bb3bd7ebf5041696766e2e5f39f3a96"
 
 _H, _W = 72, 104
 _MAX_LEVEL, _PAD, _WIN = 2, 22, 21
@@ -81,7 +81,9 @@ def digest(*outputs: torch.Tensor) -> str:
 
 def run_case(device) -> str:
     """The fused ops on :func:`case` on ``device`` (both pyramids; the LK plain, with a guess, with the
-    forward-backward check), as one :func:`digest`."""
+    forward-backward check; CLAHE of both frames, VINS's and a padded grid, with and without
+    clipping; setMask, :func:`_mask_outputs`), as one :func:`digest`."""
+    from .clahe_op import clahe_op
     from .ops import lk_op, pyramid_op
 
     c = {k: v.to(device) for k, v in case().items()}
@@ -91,7 +93,29 @@ def run_case(device) -> str:
     for init, fb in ((None, -1), (c["init"], -1), (None, 1)):
         outs += list(lk_op(P, Q, c["pts"], c["valid"], init, _H, _W, _PAD, _PAD, _MAX_LEVEL, _WIN, _WIN, 30, 0.01,
                            1e-4, fb, 0.5, True))
+    for img, clip, gx, gy in ((c["prev"], 3.0, 8, 8), (c["next"], 2.0, 5, 3), (c["next"], 0.0, 4, 4)):
+        outs.append(clahe_op(img, clip, gx, gy))  # 104 % 5 != 0: the reflect-101 padded histogram source
+    outs += _mask_outputs(c)
     return digest(*outs)
+
+
+def _mask_outputs(c) -> list:
+    """setMask (``torch_frontend::set_mask``) on the case's points and guesses as 24 features per stream
+    (the edge, outside and NaN ones among them), track counts with ties, discs that overlap and cross
+    the border: one base mask for both streams (int64 counts), then one per stream (int32, float64)."""
+    from .mask_op import set_mask_op
+
+    pts = torch.cat((c["pts"], c["init"]), 1)
+    B, N = pts.shape[:2]
+    cnt = (torch.arange(B * N, device=pts.device).view(B, N) * 7) % 4
+    valid = torch.cat((c["valid"], c["valid"]), 1)
+    base = torch.full((1, _H, _W), 255, dtype=torch.uint8, device=pts.device)
+    base[:, :, :6] = 254  # not exactly 255: no feature kept there
+    base[:, 40:, 90:] = 0
+    outs = list(set_mask_op(pts, cnt, valid, base, 17.0))
+    per_stream = torch.cat((base, base.flip(-1)))
+    outs += list(set_mask_op(pts.double(), cnt.int(), valid, per_stream, 11.5))
+    return outs
 
 
 def cuda_selfcheck(device=None) -> Optional[str]:

@@ -1,4 +1,4 @@
-"""Readers of image sequences: EuRoC/TUM-VI ASL folders, image folders, ROS bags, and the
+"""Readers of image sequences: EuRoC/TUM-VI ASL folders, KITTI sequences, image folders, ROS bags, and the
 ``MultiStream`` batcher.
 
 The OpenCV-YAML reader (``torch_frontend.opencv_yaml``), the ``sensor.yaml`` parser
@@ -12,6 +12,7 @@ from .euroc import EurocSequence, euroc_config
 from .feature_bag import FeatureBag, FeatureBagWriter, FeatureMessage, read_feature_bag
 from .folder import ImageFolderSequence
 from .frames import DataError, Frame, Sequence, decode_image, read_image
+from .kitti import KittiSequence, kitti_config
 from .rosbag import RosbagSequence, list_image_topics
 from .sources import open_sequence
 
@@ -39,6 +40,8 @@ __all__ = [*_TRAJECTORY,
     "decode_image",
     "EurocSequence",
     "ImageFolderSequence",
+    "KittiSequence",
+    "kitti_config",
     "RosbagSequence",
     "list_image_topics",
     "FeatureBag",

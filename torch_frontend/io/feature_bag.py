@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Iterator, List, Optional, Union
+from typing import Iterator, List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -115,6 +115,27 @@ def _typestore(fmt: str):
     return get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
 
 
+def point_cloud_values(m: FeatureMessage, num_cameras: int = 1) -> Tuple[np.ndarray, List[np.ndarray]]:
+    """The values of a ``/feature_tracker/feature`` ``sensor_msgs/PointCloud`` (module docstring):
+    ``(xy, channels)``, ``xy`` ``(M, 2)`` float32 (the points are ``(x, y, 1)``) and the five
+    channels' values in VINS's order (id value ``id * num_cameras + camera``, u, v, vx, vy), each
+    ``(M,)`` float32 contiguous. The bag writer and the live node (``io.ros_messages``) both build
+    their messages from it, so the two are equal by construction.
+
+    Raises:
+        ValueError: a camera index ``>= num_cameras``.
+    """
+    xy = np.ascontiguousarray(np.asarray(m.xy, dtype=np.float32).reshape(-1, 2))
+    uv = np.asarray(m.uv, dtype=np.float32).reshape(-1, 2)
+    vel = np.asarray(m.velocity, dtype=np.float32).reshape(-1, 2)
+    ids = np.asarray(m.ids, dtype=np.int64).reshape(-1)
+    cam = np.asarray(m.camera, dtype=np.int64).reshape(-1)
+    if cam.size and int(cam.max()) >= num_cameras:
+        raise ValueError(f"camera {int(cam.max())} in a message of {num_cameras} camera(s)")
+    idv = (ids * num_cameras + cam).astype(np.float32)
+    return xy, [np.ascontiguousarray(v, dtype=np.float32) for v in (idv, uv[:, 0], uv[:, 1], vel[:, 0], vel[:, 1])]
+
+
 class FeatureBagWriter:
     """Write the feature tracker's topics into a new bag (module docstring).
 
@@ -188,17 +209,12 @@ class FeatureBagWriter:
         """One ``/feature_tracker/feature`` message (points in the order given)."""
         T = self.ts.types
         P, C = T["geometry_msgs/msg/Point32"], T["sensor_msgs/msg/ChannelFloat32"]
-        xy = np.asarray(m.xy, dtype=np.float32).reshape(-1, 2)
-        uv = np.asarray(m.uv, dtype=np.float32).reshape(-1, 2)
-        vel = np.asarray(m.velocity, dtype=np.float32).reshape(-1, 2)
-        ids = np.asarray(m.ids, dtype=np.int64).reshape(-1)
-        cam = np.asarray(m.camera, dtype=np.int64).reshape(-1)
-        if cam.size and int(cam.max()) >= self.num_cameras:
-            raise ValueError(f"{self.path}: camera {int(cam.max())} in a bag of {self.num_cameras} camera(s)")
-        idv = (ids * self.num_cameras + cam).astype(np.float32)
+        try:
+            xy, values = point_cloud_values(m, self.num_cameras)
+        except ValueError as exc:
+            raise ValueError(f"{self.path}: {exc}") from None
         points = [P(x=float(x), y=float(y), z=1.0) for x, y in xy]
-        chans = [C(name=n, values=np.ascontiguousarray(v, dtype=np.float32))
-                 for n, v in zip(CHANNEL_NAMES, (idv, uv[:, 0], uv[:, 1], vel[:, 0], vel[:, 1]))]
+        chans = [C(name=n, values=v) for n, v in zip(CHANNEL_NAMES, values)]
         msg = T[POINT_CLOUD](header=self._header(FEATURE_TOPIC, m.stamp_ns, m.frame_id), points=points,
                              channels=chans)
         self._write(FEATURE_TOPIC, m.stamp_ns, msg, POINT_CLOUD)
@@ -392,4 +408,5 @@ def read_feature_bag(path: PathLike, topic: str = FEATURE_TOPIC, num_cameras: in
 
 
 __all__ = ["FEATURE_TOPIC", "RESTART_TOPIC", "IMAGE_TOPIC", "FRAME_ID", "CHANNEL_NAMES", "BAG_FORMATS",
-           "FeatureMessage", "FeatureBag", "FeatureBagWriter", "read_feature_bag", "bag_format_of"]
+           "FeatureMessage", "FeatureBag", "FeatureBagWriter", "read_feature_bag", "bag_format_of",
+           "point_cloud_values"]

@@ -54,7 +54,7 @@ def _stamps_from_names(folder: Path, files: List[Path]) -> Tuple[Optional[List[i
             i = next(i for i, k in enumerate(kinds) if k != major)
             j = kinds.index(major)
             return None, (f"{folder}: {files[i].name!r} is not a time like the other names (e.g. {files[j].name!r}): "
-                          f"move it out of the folder, or give a frame rate (fps)")
+                          f"move it out of the folder, or give a frame rate (`fps`)")
     if kinds[0] == "seconds" and all(k == "seconds" for k in kinds):
         return [int(Decimal(s) * 1_000_000_000) for s in stems], ""
     if kinds[0] == "integer" and all(k == "integer" for k in kinds):
@@ -65,18 +65,18 @@ def _stamps_from_names(folder: Path, files: List[Path]) -> Tuple[Optional[List[i
         if sum(long_names) * 2 > len(stems):  # a stray short number among nanosecond names
             i, j = long_names.index(False), long_names.index(True)
             return None, (f"{folder}: {files[i].name!r} is not a time like the other names (e.g. {files[j].name!r}, "
-                          f"nanoseconds): move it out of the folder, or give a frame rate (fps)")
+                          f"nanoseconds): move it out of the folder, or give a frame rate (`fps`)")
         distinct = sorted(set(stamps))
         if len(distinct) < 2:
             return None, (f"{folder}: cannot tell whether the integer name {files[0].name!r} is a time or a frame "
-                          f"number; give a frame rate (fps)")
+                          f"number; give a frame rate (`fps`)")
         spacing = statistics.median(b - a for a, b in zip(distinct, distinct[1:]))
         rate = 1e9 / spacing
         if PLAUSIBLE_FPS[0] <= rate <= PLAUSIBLE_FPS[1]:
             return stamps, ""
         return None, (f"{folder}: integer names like {files[0].name!r}, spaced by {spacing:g}, do not look like "
-                      f"times (as nanoseconds: {rate:.3g} Hz; frame numbers?); give a frame rate (fps)")
-    return None, f"{folder}: cannot take timestamps from names like {files[0].name!r} ({_NAME_HELP}); give a frame rate (fps)"
+                      f"times (as nanoseconds: {rate:.3g} Hz; frame numbers?); give a frame rate (`fps`)")
+    return None, f"{folder}: cannot take timestamps from names like {files[0].name!r} ({_NAME_HELP}); give a frame rate (`fps`)"
 
 
 class ImageFolderSequence(Sequence):

@@ -5,7 +5,8 @@ Convention:
     yields ``Frame`` objects: ``image (H, W)`` uint8 numpy, ``stamp_ns`` int (nanoseconds, exact)
     and ``timestamp`` float64 seconds (``stamp_ns * 1e-9``, what the tracker takes). A frame that
     cannot be read (missing, truncated or corrupt file, undecodable message) raises ``DataError``
-    naming the file or message; with ``skip_bad=True`` it is skipped instead and recorded in
+    naming the file or message (iterating a ``Sequence``: ``BadFrameError``, a ``DataError`` that
+    names ``skip_bad``); with ``skip_bad=True`` it is skipped instead and recorded in
     ``Sequence.skipped`` as ``(source, reason)``.
 
     Colour images become grey with OpenCV's BGR→grey weights, with one ``DataWarning`` per pass
@@ -26,6 +27,7 @@ from typing import Callable, Iterator, List, Tuple
 import numpy as np
 
 from ..errors import (
+    BadFrameError,
     DataError,  # noqa: F401  (re-exported)
     DataWarning,
 )
@@ -96,7 +98,7 @@ class Sequence:
                 img = self._load(item)
             except DataError as exc:
                 if not self.skip_bad:
-                    raise
+                    raise BadFrameError.naming(str(exc), "skip_bad") from exc
                 self.skipped.append((item.source, str(exc)))
                 continue
             yield Frame(item.index, item.stamp_ns, img, item.source)

@@ -1,4 +1,4 @@
-"""``open_sequence``: one entry point for the readers (what the CLI's ``--euroc/--bag/--images`` use)."""
+"""``open_sequence``: one entry point for the readers (what the CLI's ``--euroc/--bag/--images/--kitti`` use)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,14 @@ from typing import Union
 from .frames import DataError, Sequence
 
 PathLike = Union[str, Path]
-KINDS = ("euroc", "bag", "images")
+KINDS = ("euroc", "bag", "images", "kitti")
 
 
 def open_sequence(kind: str, path: PathLike, *, camera: str = "cam0", fps: float | None = None,
                   topic: str | None = None, skip_bad: bool = False) -> Sequence:
     """Open a sequence of kind ``"euroc"`` (ASL folder), ``"bag"`` (ROS 1/2 bag, needs ``topic``) or
-    ``"images"`` (image folder, ``fps`` optional).
+    ``"images"`` (image folder, ``fps`` optional) or ``"kitti"`` (KITTI odometry sequence or raw
+    drive, ``camera`` ``cam0`` .. ``cam3``).
 
     Raises:
         DataError: unknown kind, missing or unreadable input, empty sequence, missing topic.
@@ -27,6 +28,10 @@ def open_sequence(kind: str, path: PathLike, *, camera: str = "cam0", fps: float
         from .folder import ImageFolderSequence
 
         return ImageFolderSequence(path, fps=fps, skip_bad=skip_bad)
+    if kind == "kitti":
+        from .kitti import KittiSequence
+
+        return KittiSequence(path, camera=camera, skip_bad=skip_bad)
     if kind == "bag":
         from .rosbag import RosbagSequence
 

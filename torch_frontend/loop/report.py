@@ -21,8 +21,10 @@ Convention:
       ``stream<b>/pose_graph/`` per stream with ``separate_graphs``.
     * ``summary.json`` (the ``run.summary`` dict; ``ate_before``/``ate_after`` in metres at the top
       level when ground truth was given).
-    * ``trajectory_top.png``: top view (x, y) before (VIO) and after loop closure, with the loop
-      edges; aligned to the ground truth (SE(3), Umeyama) when there is one.
+    * ``trajectory_top.png``: top view before (VIO) and after loop closure, with the loop edges,
+      in the plane perpendicular to the run's up axis (``summary["up"]``: x-y for ``+z``, x-z for
+      KITTI's ``-y``; ``loop.world.plane_axes``); aligned to the ground truth (SE(3), Umeyama)
+      when there is one.
       ``place_recognition_scores.png``: per keyframe, the best place-recognition score and the
       candidates (accepted / rejected).
 
@@ -183,12 +185,21 @@ def _apply(p: np.ndarray, Rt: Optional[tuple]) -> np.ndarray:
     return p if Rt is None else p @ Rt[0].T + Rt[1]
 
 
+def _view(run) -> np.ndarray:
+    """``(3, 3)``: world positions -> the plot's (horizontal, vertical, up) coordinates
+    (``loop.world.to_z_up`` of the run's up axis)."""
+    from .world import to_z_up
+
+    return to_z_up(str(run.summary.get("up", "+z")))
+
+
 def _keyframe_xy(run, align) -> Dict[str, Dict[tuple, np.ndarray]]:
     """``{"before"|"after": {(graph, index): xy}}`` of every keyframe, in the plotted frames."""
     pos: Dict[str, Dict[tuple, np.ndarray]] = {"before": {}, "after": {}}
+    V = _view(run)
     for s in run.streams:
         for key, traj in (("before", s.vio), ("after", s.corrected)):
-            p = _apply(np.asarray(traj.t, dtype=np.float64).reshape(-1, 3), align[key][s.stream])
+            p = _apply(np.asarray(traj.t, dtype=np.float64).reshape(-1, 3), align[key][s.stream]) @ V.T
             for k, gi in enumerate(np.asarray(s.graph_indices).tolist()):
                 pos[key][(s.graph, int(gi))] = p[k, :2]
     return pos
@@ -202,15 +213,19 @@ def plot_trajectories(run) -> bytes:
     pos = _keyframe_xy(run, align)
     has_gt = any(s.ground_truth is not None for s in run.streams)
     colours = ["tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
+    from .world import axis_name, plane_axes
+
+    V = _view(run)
+    labels = [f"{axis_name(a)} (m)" for a in plane_axes(str(run.summary.get("up", "+z")))]
     for ax, key, title in ((axes[0], "before", "before: VIO"), (axes[1], "after", "after: loop-corrected")):
         for s in run.streams:
             c = colours[s.stream % len(colours)]
             if s.ground_truth is not None:
-                g = np.asarray(s.ground_truth.t)
+                g = np.asarray(s.ground_truth.t, dtype=np.float64) @ V.T
                 ax.plot(g[:, 0], g[:, 1], "-", color="0.55", lw=1.0,
                         label="ground truth" if s.stream == run.streams[0].stream else None)
             traj = s.vio if key == "before" else s.corrected
-            p = _apply(np.asarray(traj.t, dtype=np.float64).reshape(-1, 3), align[key][s.stream])
+            p = _apply(np.asarray(traj.t, dtype=np.float64).reshape(-1, 3), align[key][s.stream]) @ V.T
             if p.shape[0]:
                 ate = s.ate_before if key == "before" else s.ate_after
                 lab = s.name + (f" (ATE {ate:.3f} m)" if ate is not None else "")
@@ -232,8 +247,8 @@ def plot_trajectories(run) -> bytes:
                         label="rejected candidate" if n_rej == 0 else None)
                 n_rej += 1
         ax.set_title(title + (" (aligned to ground truth)" if has_gt else ""))
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
+        ax.set_xlabel(labels[0])
+        ax.set_ylabel(labels[1])
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="best")

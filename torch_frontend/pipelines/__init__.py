@@ -7,11 +7,15 @@
   a rendered revisiting sequence (``demo_sequence``). Its middle stages are ``loop_stages``.
 * ``vocabulary``: :func:`run_vocabulary_train` (:class:`VocabularyOptions`) and
   :func:`load_vocabulary` (the package's ``.npz``, VINS's ``.bin``, DBoW2 YAML).
+* ``config``: :func:`run_make_config` (``make_config``): a VINS config from Kalibr / camera_info
+  calibration files (``torch_frontend.calibration``).
 * shared: ``inputs`` (``resolve_configs``: one config per source, each ``euroc`` source's own
   ``sensor.yaml`` by default; ``open_inputs`` for ``(kind, path[, options])`` sources,
   ``ArraySequence``), ``rig`` (``read_rig``: a rig file's inputs and their configs), ``common`` (``InputOptions``, ``OptionError``, ``progress_bar``,
   ``pad_ragged``, ``resolve_device``), ``prefetch`` (:class:`FrameStream`: ``MultiStream``'s
   batches with the frames decoded in DataLoader workers, ``InputOptions.workers``).
+* ``ros_node``: :func:`run_ros_node` (:class:`RosOptions`, :class:`RosCamera`): the live ROS 1
+  node (``torch-frontend ros``), VINS-Mono's ``feature_tracker_node`` for one or more cameras.
 * sharded over the ranks of a ``torch.distributed`` job (``torchrun``): ``sharded``
   (:func:`run_track_sharded`, :func:`run_loop_sharded`, :func:`run_vocabulary_train_sharded`;
   ``track.track_streams`` writes one output set per stream).
@@ -51,6 +55,10 @@ _EXPORTS = {
     "demo_sequence": "loop",
     "extrinsic_from_config": "loop",
     "run_loop": "loop",
+    "run_make_config": "make_config",
+    "RosCamera": "ros_node",
+    "RosOptions": "ros_node",
+    "run_ros_node": "ros_node",
     "VocabularyOptions": "vocabulary",
     "load_vocabulary": "vocabulary",
     "run_vocabulary_train": "vocabulary",

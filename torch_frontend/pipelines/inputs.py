@@ -1,8 +1,8 @@
 """The inputs of a pipeline: one config and one ``io`` sequence per source.
 
 Convention:
-    A *source* is ``(kind, path)`` with kind ``euroc`` (ASL folder), ``images`` (image folder) or
-    ``bag`` (ROS 1/2 bag), as ``io.open_sequence`` takes it, ``(kind, path, options)`` with
+    A *source* is ``(kind, path)`` with kind ``euroc`` (ASL folder), ``images`` (image folder),
+    ``kitti`` (KITTI sequence) or ``bag`` (ROS 1/2 bag), as ``io.open_sequence`` takes it, ``(kind, path, options)`` with
     per-source reader options (a dict of ``camera``, ``topic``, ``fps``, overriding the run's
     ``InputOptions``; a rig file's entries, ``pipelines.rig``), or an already open
     ``io.Sequence`` (for instance an :class:`ArraySequence` of frames in memory). Source b is
@@ -12,7 +12,9 @@ Convention:
     config path), None, or a list of one entry per source (each a ``TrackerConfig``, a path or
     None). A source without a config (None) uses its own ``sensor.yaml``: an ``euroc`` source's
     camera folder's (``io.euroc.euroc_config``: VINS-Mono's EuRoC front-end settings), never
-    another source's. :func:`resolve_configs` gives the B per-stream configs; each file is read
+    another source's; a ``kitti`` source's from its ``calib.txt`` (``io.kitti.kitti_config``:
+    VINS-Mono's front-end defaults), and a config given for a ``kitti`` source gives its front-end
+    keys only (the camera stays calib.txt's). :func:`resolve_configs` gives the B per-stream configs; each file is read
     once, so sources naming one file share one ``TrackerConfig`` (one stream group of the tracker).
 """
 
@@ -84,6 +86,14 @@ def _own_config(source: Source, camera: str, index: int, cache: Dict[Any, Any]):
     sequence with a ``sensor_yaml``), read once per file."""
     from ..config import config_from_sensor_yaml
 
+    if isinstance(source, tuple) and source[0] == "kitti":
+        from ..io.kitti import kitti_config
+
+        cam = source_options(source).get("camera") or camera
+        key = ("kitti", str(Path(source[1]).resolve()), cam)
+        if key not in cache:
+            cache[key] = kitti_config(source[1], cam)
+        return cache[key]
     if isinstance(source, tuple) and source[0] == "euroc":
         from ..io.euroc import euroc_config, find_camera_dir
 
@@ -99,8 +109,8 @@ def _own_config(source: Source, camera: str, index: int, cache: Dict[Any, Any]):
             cache[key] = config_from_sensor_yaml(yaml)
         return cache[key]
     raise ConfigError(f"no config given for input {index + 1} ({source_name(source)}): a VINS config file is "
-                      f"needed unless a euroc source provides sensor.yaml (give a config for every input, or "
-                      f"one for this input)")
+                      f"needed unless a euroc source provides sensor.yaml or a kitti source calib.txt (give a "
+                      f"config for every input, or one for this input)")
 
 
 def _load(path: Path):
@@ -113,18 +123,33 @@ def _load(path: Path):
     return load_config(path)
 
 
+def _kitti_with(source: Source, base, camera: str, cache: Dict[Any, Any]):
+    """A ``kitti`` source's config with ``base``'s front-end keys (``io.kitti.kitti_config``), once
+    per (sequence, camera, config)."""
+    from ..io.kitti import kitti_config
+
+    cam = source_options(source).get("camera") or camera
+    key = ("kitti", str(Path(source[1]).resolve()), cam, id(base))
+    if key not in cache:
+        cache[key] = (kitti_config(source[1], cam, base=base), base)  # base kept alive: its id stays unique
+    return cache[key][0]
+
+
 def resolve_configs(config: Any, sources: Sequence[Source] = (), camera: str = "cam0") -> List[Any]:
     """The ``TrackerConfig`` of every source, in order (module docstring): ``config`` one config
     for all (a ``TrackerConfig`` or a VINS config path), None (each ``euroc`` source's own
     ``sensor.yaml`` of camera folder ``camera``, or of its own ``camera`` option), or a list of
     one entry per source (``TrackerConfig``, path or None). A path named ``sensor.yaml`` is read
-    as an ASL camera file (as a source's own); every file is read once.
+    as an ASL camera file (as a source's own); every file is read once. A ``kitti`` source's
+    camera is always its ``calib.txt``'s; a config given for it sets the front-end keys.
 
     Raises:
         OptionError: a list whose length is not the number of sources.
-        ConfigError: an unreadable config, a source without a config that has no ``sensor.yaml``,
+        ConfigError: an unreadable config, a source without a config that has no ``sensor.yaml``
+            (nor ``calib.txt``),
             or a config without a camera (the tracker needs one).
-        DataError: an ``euroc`` source without its camera folder or ``sensor.yaml``.
+        DataError: an ``euroc`` source without its camera folder or ``sensor.yaml``; a ``kitti``
+            source without its calibration or images.
     """
     from ..config import TrackerConfig
 
@@ -150,6 +175,9 @@ def resolve_configs(config: Any, sources: Sequence[Source] = (), camera: str = "
                               "provides sensor.yaml")
         else:
             cfg = _own_config(sources[i], camera, i, cache)
+        if (sources and isinstance(sources[i], tuple) and sources[i][0] == "kitti" and c is not None
+                and not cfg.origin.startswith("KITTI")):  # (a KITTI input's config already: as it is)
+            cfg = _kitti_with(sources[i], cfg, camera, cache)
         if cfg.camera is None:
             raise ConfigError("has no camera (an estimator-only config?); the tracker needs one", cfg.path)
         out.append(cfg)

@@ -1,5 +1,8 @@
 """Loop closure on images + a VIO trajectory, without ROS (``torch-frontend loop``, ``demo --loop``):
-:func:`run_loop` and the demo on a rendered revisiting sequence (:func:`demo_loop`).
+:func:`run_loop`. Its options and results are in ``loop_options`` (:class:`LoopOptions`,
+:class:`LoopRun`, the extrinsics), its middle stages in ``loop_stages``, its checkpoints in
+``loop_checkpoint``, the demo on a rendered revisiting sequence in ``loop_demo``
+(:func:`demo_loop`); the names of all of them are importable from here.
 
 Pipeline (one call, B input streams):
 
@@ -24,7 +27,11 @@ Convention:
     * Poses are body-to-world ``(R_w_i, T_w_i)`` float64 (VINS), quaternions ``(w, x, y, z)``; the
       extrinsic ``(R_ic, t_ic)`` is camera-to-body (VINS's ``qic``, ``tic``): from the config's
       ``extrinsicRotation``/``extrinsicTranslation`` (VINS-Mono), ``body_T_cam0`` (VINS-Fusion) or
-      an EuRoC ``sensor.yaml``'s ``T_BS``; identity when none is given.
+      an EuRoC ``sensor.yaml``'s ``T_BS``; identity when none is given (a ``ConfigWarning`` says so).
+    * World frame: the poses' world has ``LoopOptions.up`` pointing up (default ``+z``, VINS's);
+      another up axis (KITTI's camera-0 world: ``-y``) is rotated into a z-up world for the pose
+      graph and back for the trajectories and ATE (``loop.world``); poses whose motion is far from
+      horizontal in it get a ``WorldFrameWarning`` naming the likely up axis.
     * Pose coverage: a frame is covered when its time lies between two poses at most
       ``max_pose_gap`` seconds apart (or on a pose). Uncovered frames are tracked but never
       keyframes (as VINS, whose estimator publishes nothing before it initialises); a stream with
@@ -42,17 +49,18 @@ from __future__ import annotations
 
 import math
 import time as _time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
-from ..errors import ConfigError, DataError
-from .common import InputOptions, OptionError, pad_ragged, progress_bar, resolve_device
+from ..errors import DataError
+from ..loop.world import into_z_up, warn_if_not_horizontal
+from .common import OptionError, pad_ragged, progress_bar, resolve_device
 from .inputs import (
-    ArraySequence,
+    ArraySequence,  # noqa: F401  (re-exported: the demo's and users' frames in memory)
     Source,
     config_label,
     frames_to_read,
@@ -61,6 +69,17 @@ from .inputs import (
     stream_config_entry,
     stream_names,
     stream_sizes,
+)
+from .loop_options import (
+    MIN_POINTS_TO_QUERY,
+    PNP_BACKENDS,
+    POSE_GRAPH_MODES,
+    LoopOptions,
+    LoopRecord,
+    LoopRun,
+    StreamRun,
+    extrinsic_from_config,
+    stream_extrinsics,
 )
 from .loop_stages import (
     KeyframeLog,
@@ -74,21 +93,16 @@ from .loop_stages import (
     span,
     triangulate_keyframes,
 )
-from .track import TRACKER_MODES, make_tracker, tracked_batches
+from .track import make_tracker, tracked_batches
 
 __all__ = [
-    "DEMO_OPTIONS",
-    "DEMO_RENDER",
     "LoopOptions",
     "LoopRecord",
     "LoopRun",
     "MIN_POINTS_TO_QUERY",
+    "PNP_BACKENDS",
+    "POSE_GRAPH_MODES",
     "StreamRun",
-    "demo_announcement",
-    "demo_config",
-    "demo_loop",
-    "demo_options",
-    "demo_sequence",
     "extrinsic_from_config",
     "run_loop",
     "stream_extrinsics",
@@ -96,222 +110,23 @@ __all__ = [
 
 PathLike = Union[str, Path]
 _F64 = torch.float64
-MIN_POINTS_TO_QUERY = 25  # VINS accepts a loop only with > 25 matches: fewer points can never pass
-POSE_GRAPH_MODES = ("4dof", "6dof")
-PNP_BACKENDS = ("torch", "opencv")
+#: the demo's names, importable from here too (``loop_demo`` imports :func:`run_loop` from this
+#: module, so they are looked up on first use rather than imported at the top)
+_DEMO_NAMES = ("DEMO_OPTIONS", "DEMO_RENDER", "demo_announcement", "demo_config", "demo_loop", "demo_options",
+               "demo_sequence")
 
 
-# ----------------------------------------------------------------------------------------------
-# options and results
+def __getattr__(name: str):
+    if name in _DEMO_NAMES:
+        import importlib
+
+        value = getattr(importlib.import_module(".loop_demo", __package__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-@dataclass
-class LoopOptions(InputOptions):
-    """Options of :func:`run_loop` (and the reader options of :class:`InputOptions`). Distances in
-    metres, angles in degrees, times in seconds.
-
-    Attributes:
-        vocabulary: a ``Vocabulary`` or a vocabulary file (``vocabulary.load_vocabulary``).
-        train_vocabulary: train one on this run's keyframe descriptors instead; exactly one of
-            ``vocabulary`` / ``train_vocabulary``.
-        vocabulary_k, vocabulary_L: branching factor and depth of a trained vocabulary.
-        vocabulary_sample: a seeded random sample of at most this many descriptors per keyframe
-            goes into training (k-medians time grows with their number; None: all).
-        load_graph: a saved pose graph folder (VINS format) loaded into every graph first.
-        separate_graphs: one pose graph per stream instead of one shared map.
-        mode: pose graph: ``"4dof"`` (VIO with IMU: x, y, z, yaw) or ``"6dof"`` (without).
-        tracker_mode: front end rules, ``"mono"`` (VINS-Mono) or ``"fusion"`` (VINS-Fusion).
-        keyframe_distance: new keyframe when the body moved more than this (m) ...
-        keyframe_angle: ... or turned more than this (degrees) since the last keyframe.
-        keyframe_every: instead, every k-th published frame with a pose (None: the rule above).
-        max_pose_gap: largest gap between two poses to interpolate across (s).
-        R_ic, t_ic: camera-to-body extrinsic ``(3, 3)`` / ``(3,)`` (m) overriding the config's.
-        pnp_backend: loop verification PnP-RANSAC, ``"torch"`` or ``"opencv"``.
-        triangulation_chunk: keyframes per batched triangulation call.
-        track_window: published frames either side of a chunk whose observations triangulate it.
-        describe_batch: keyframes per batched description call.
-        seed: seed of vocabulary sampling/training and of the pose graph's RANSAC.
-        keep_images: keep the keyframe images in ``LoopRun.images`` (for plots of matches).
-        checkpoint_every: with ``out``, write a checkpoint (``pipelines.loop_checkpoint``, inside
-            the run's staging folder) every this many frames while tracking and every this many
-            keyframes while building the pose graph; None: every 500 or 60 s, whichever first;
-            0: none.
-        resume: continue the interrupted run of the same ``out`` from its last checkpoint
-            (``checkpoint.ResumeError`` when it was another run: inputs, poses, config, options);
-            no checkpoint to continue from: start from the first frame (a ``DataWarning`` says so).
-    """
-
-    vocabulary: Any = None
-    train_vocabulary: bool = False
-    vocabulary_k: int = 10
-    vocabulary_L: int = 4
-    vocabulary_sample: Optional[int] = 200
-    load_graph: Optional[PathLike] = None
-    separate_graphs: bool = False
-    mode: str = "4dof"
-    tracker_mode: str = "mono"
-    keyframe_distance: float = 0.2
-    keyframe_angle: float = 10.0
-    keyframe_every: Optional[int] = None
-    max_pose_gap: float = 0.5
-    R_ic: Any = None
-    t_ic: Any = None
-    pnp_backend: str = "torch"
-    triangulation_chunk: int = 32
-    track_window: int = 40
-    describe_batch: int = 8
-    seed: int = 0
-    keep_images: bool = False
-    checkpoint_every: Optional[int] = None
-    resume: bool = False
-
-    def check(self) -> None:
-        """Raise ``OptionError`` naming the first bad option."""
-        super().check()
-        if self.vocabulary is None and not self.train_vocabulary:
-            raise OptionError("vocabulary", "vocabulary: none given: give a vocabulary (a Vocabulary or a file) "
-                                            "or set train_vocabulary")
-        if self.vocabulary is not None and self.train_vocabulary:
-            raise OptionError("vocabulary", "vocabulary: give either a vocabulary or train_vocabulary, not both")
-        choices = (("mode", POSE_GRAPH_MODES), ("tracker_mode", TRACKER_MODES), ("pnp_backend", PNP_BACKENDS))
-        for name, allowed in choices:
-            if getattr(self, name) not in allowed:
-                raise OptionError(name, f"{name}: expected {' or '.join(map(repr, allowed))}, "
-                                        f"got {getattr(self, name)!r}")
-        for name in ("keyframe_every", "vocabulary_sample", "triangulation_chunk", "describe_batch"):
-            v = getattr(self, name)
-            if v is not None and v < 1:
-                raise OptionError(name, f"{name}: expected >= 1, got {v}")
-        for name in ("keyframe_distance", "keyframe_angle", "track_window"):
-            if not getattr(self, name) >= 0:
-                raise OptionError(name, f"{name}: expected >= 0, got {getattr(self, name)}")
-        if not math.isfinite(self.keyframe_angle):  # its cosine is taken (inf: a math domain error)
-            raise OptionError("keyframe_angle", f"keyframe_angle: expected a finite number of degrees, "
-                                                f"got {self.keyframe_angle}")
-        if not self.max_pose_gap > 0:
-            raise OptionError("max_pose_gap", f"max_pose_gap: expected > 0, got {self.max_pose_gap}")
-        if self.checkpoint_every is not None and (isinstance(self.checkpoint_every, bool)
-                                                  or not isinstance(self.checkpoint_every, int)
-                                                  or self.checkpoint_every < 0):
-            raise OptionError("checkpoint_every", f"checkpoint_every: expected an integer >= 0 (frames; 0: no "
-                                                  f"checkpoints), got {self.checkpoint_every!r}")
-
-
-@dataclass
-class LoopRecord:
-    """One verified loop candidate: the pose graph's ``LoopResult`` plus where it happened.
-
-    ``graph``: graph number; ``stream``/``old_stream``: input streams of the current and old
-    keyframes (-1 for a keyframe loaded with ``load_graph``); ``time``/``old_time``: seconds.
-    """
-
-    graph: int
-    stream: int
-    old_stream: int
-    time: float
-    old_time: float
-    result: Any
-
-
-@dataclass
-class StreamRun:
-    """One input stream of a run.
-
-    ``vio``/``corrected``: ``trajectory.Trajectory`` of its keyframes (input VIO poses /
-    loop-corrected poses in the pose-graph world); ``graph_indices``: the keyframes' indices in
-    graph ``graph``; ``num_points``: 3-D points per keyframe; ``ground_truth``: the reference
-    trajectory or None; ``ate_before``/``ate_after`` in metres or None.
-    """
-
-    name: str
-    stream: int
-    graph: int
-    sequence: int
-    frames: int = 0
-    published: int = 0
-    uncovered: int = 0
-    keyframe_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    graph_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    num_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    vio: Any = None
-    corrected: Any = None
-    ground_truth: Any = None
-    ate_before: Optional[float] = None
-    ate_after: Optional[float] = None
-
-
-@dataclass
-class LoopRun:
-    """Everything a run produced: the pose graph(s), the streams, every verified loop candidate,
-    the ``summary.json`` dict and, with ``keep_images``, the keyframe images
-    ``{(graph, index): (H, W) uint8}``."""
-
-    graphs: List[Any]
-    streams: List[StreamRun]
-    loops: List[LoopRecord]
-    summary: Dict[str, Any]
-    images: Optional[Dict[Tuple[int, int], np.ndarray]] = None
-    out: Optional[Path] = None
-
-    def keyframe(self, graph: int, index: int):
-        """The ``KeyFrame`` with ``index`` in graph ``graph``."""
-        return self.graphs[graph].keyframes[index]
-
-
-def extrinsic_from_config(cfg) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Camera-to-body ``(R_ic (3, 3), t_ic (3,))`` float64 of a ``TrackerConfig`` (see the module
-    docstring); identity / zero when the config gives none."""
-    raw = getattr(cfg, "raw", None) or {}
-    path = getattr(cfg, "path", None)
-    if "extrinsicRotation" in raw or "extrinsicTranslation" in raw:
-        R = np.asarray(raw.get("extrinsicRotation"), dtype=np.float64)
-        t = np.asarray(raw.get("extrinsicTranslation"), dtype=np.float64)
-        if R.shape != (3, 3):
-            raise ConfigError(f"expected a 3x3 matrix, got shape {R.shape}", path, "extrinsicRotation")
-        if t.size != 3:
-            raise ConfigError(f"expected 3 numbers, got shape {t.shape}", path, "extrinsicTranslation")
-        return torch.from_numpy(R.copy()), torch.from_numpy(t.reshape(3).copy())
-    T = getattr(cfg, "body_T_cam0", None)
-    if T is None and path and Path(path).name == "sensor.yaml":
-        from ..opencv_yaml import read_opencv_yaml
-
-        tbs = read_opencv_yaml(Path(path)).get("T_BS")
-        if isinstance(tbs, dict) and len(tbs.get("data", [])) == 16:
-            T = np.asarray(tbs["data"], dtype=np.float64).reshape(4, 4)
-    if T is not None:
-        T = np.asarray(T, dtype=np.float64)
-        return torch.from_numpy(T[:3, :3].copy()), torch.from_numpy(T[:3, 3].copy())
-    return torch.eye(3, dtype=_F64), torch.zeros(3, dtype=_F64)
-
-
-def stream_extrinsics(cfgs: Sequence[Any], opt: LoopOptions) -> Tuple[List[torch.Tensor], List[torch.Tensor]]:
-    """Every stream's camera-to-body ``(R_ic (3, 3), t_ic (3,))`` float64: its config's
-    (:func:`extrinsic_from_config`, read once per config) or ``opt.R_ic`` / ``opt.t_ic`` for all.
-
-    Raises:
-        OptionError: a shared map (``separate_graphs`` False) of streams whose configs give
-            different extrinsics: VINS's pose graph has one ``qic``/``tic`` (loop verification
-            maps both keyframes' cameras to their bodies with it), so such streams need one graph
-            each.
-    """
-    per: Dict[int, Tuple[torch.Tensor, torch.Tensor]] = {}
-    R_ics, t_ics = [], []
-    for c in cfgs:
-        if id(c) not in per:
-            R, t = extrinsic_from_config(c)
-            R = R if opt.R_ic is None else torch.as_tensor(opt.R_ic, dtype=_F64).reshape(3, 3)
-            t = t if opt.t_ic is None else torch.as_tensor(opt.t_ic, dtype=_F64).reshape(3)
-            per[id(c)] = (R, t)
-        R_ics.append(per[id(c)][0])
-        t_ics.append(per[id(c)][1])
-    if not opt.separate_graphs:
-        for b in range(1, len(cfgs)):
-            if not (torch.equal(R_ics[b], R_ics[0]) and torch.equal(t_ics[b], t_ics[0])):
-                raise OptionError("separate_graphs", f"separate_graphs: needed for these inputs (one pose graph per "
-                                  f"input): {cfgs[0].path} (input 1) and {cfgs[b].path} (input {b + 1}) give "
-                                  f"different camera-to-body extrinsics, but a shared map has one (VINS's pose "
-                                  f"graph: one qic/tic); or give configs with one extrinsic")
-    return R_ics, t_ics
+__all__ += list(_DEMO_NAMES)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -578,9 +393,13 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
     R_ics, t_ics = stream_extrinsics(cfgs, opt)
     seqs = open_inputs(sources, cfgs, opt)
     names = stream_names(seqs)
-    trajs = [as_trajectory(p, "poses") for p in poses]
+    listed = [listed_times(sq) for sq in seqs]  # a KITTI poses file's line k is at image k's time
+    trajs = [as_trajectory(p, "poses", times=st) for p, st in zip(poses, listed)]
     pose_names = [str(p) if not isinstance(p, tuple) else f"poses of {n}" for p, n in zip(poses, names)]
-    gt_trajs = [None if g is None else as_trajectory(g, "ground truth") for g in gts]
+    gt_trajs = [None if g is None else as_trajectory(g, "ground truth", times=st) for g, st in zip(gts, listed)]
+    for name, tr in zip(pose_names, trajs):  # a WorldFrameWarning for poses far from horizontal
+        warn_if_not_horizontal(tr, opt.up, opt.mode, name)
+    trajs = [into_z_up(tr, opt.up) for tr in trajs]  # the pose graph's z-up world
     voc = None
     t0 = _time.perf_counter()
     if opt.vocabulary is not None and load_vocabulary:
@@ -589,8 +408,7 @@ def _open_inputs(config, sources, poses, gts, opt: LoopOptions, times: Dict[str,
         raise DataError(f"{opt.load_graph}: no saved pose graph here (pose_graph.txt missing)")
     times["vocabulary_load"] = _time.perf_counter() - t0
     # the readers list their stamps without decoding an image
-    for b, (sq, tr) in enumerate(zip(seqs, trajs)):
-        st = listed_times(sq)
+    for b, (st, tr) in enumerate(zip(listed, trajs)):
         if st is not None and st.size and not covered_mask(tr, st, opt.max_pose_gap).any():
             raise DataError(f"{pose_names[b]}: the poses ({span(tr.time.numpy())}) do not cover the images of "
                             f"input {b + 1} {names[b]} ({span(st)}, {st.size} images); are they this "
@@ -878,6 +696,7 @@ def _trajectories_and_ate(inp: _Inputs, gr: _Graphs, opt: LoopOptions) -> Dict[s
     """Each stream's keyframe trajectories (VIO and corrected) and ATE; returns the summary's
     pooled ATE entries (empty without ground truth)."""
     from ..geometry import R_to_quat
+    from ..loop.world import from_z_up
     from ..trajectory import Trajectory
 
     sq_b = sq_a = 0.0
@@ -891,6 +710,7 @@ def _trajectories_and_ate(inp: _Inputs, gr: _Graphs, opt: LoopOptions) -> Dict[s
                            R_to_quat(torch.stack([k.origin_vio_R for k in kfs])))
         s.corrected = Trajectory(tt.clone(), torch.stack([k.T_w_i for k in kfs]),
                                  R_to_quat(torch.stack([k.R_w_i for k in kfs])))
+        s.vio, s.corrected = from_z_up(s.vio, opt.up), from_z_up(s.corrected, opt.up)  # the poses' own world
         gt = inp.gt_trajs[s.stream]
         if gt is None:
             continue
@@ -943,6 +763,7 @@ def _summary(inp: _Inputs, opt: LoopOptions, gr: _Graphs, ate: Dict[str, float],
         "graphs": n_graphs,
         "shared_map": not opt.separate_graphs,
         "mode": opt.mode,
+        "up": opt.up,
         "tracker_mode": opt.tracker_mode,
         "device": str(inp.device),
         "config": config_label(inp.cfgs),
@@ -969,106 +790,3 @@ def _stream_summary(inp: _Inputs, gr: _Graphs, s: StreamRun) -> Dict[str, Any]:
         **stream_config_entry(inp.cfgs[s.stream]),
         "extrinsic": {"R_ic": inp.R_ics[s.stream].tolist(), "t_ic": inp.t_ics[s.stream].tolist()},
     }
-
-
-# ----------------------------------------------------------------------------------------------
-# the demo
-
-
-#: the demo's render (``render_loop_sequence`` arguments): two laps of 64 keyframes, one frame
-#: between keyframes for the tracker, and a VIO drift of 0.15 deg of yaw per keyframe plus 3 % of
-#: the distance flown (about 20 deg and 0.5 m after two laps)
-DEMO_RENDER = dict(laps=2, keyframes_per_lap=64, frames_per_keyframe=2, width=320, height=240,
-                   yaw_bias_deg=0.15, trans_drift=0.03)
-
-#: the demo's :class:`LoopOptions`: the render moves ~0.13 m and turns ~5.6 deg per rendered
-#: keyframe, so 0.1 m / 5 deg make a keyframe about every rendered keyframe or more often (147
-#: keyframes on the 2 x 64 of the render, measured), and lap 2 lies more than VINS's 50 keyframes
-#: after lap 1; the vocabulary is trained on the run
-DEMO_OPTIONS = dict(train_vocabulary=True, keyframe_distance=0.1, keyframe_angle=5.0, vocabulary_sample=150)
-
-
-def demo_announcement(options: Optional[LoopOptions] = None, **render_kwargs) -> str:
-    """What ``demo --loop`` says it runs, before it renders: laps, frames and size of the render
-    (``DEMO_RENDER`` updated by ``render_kwargs``), and the keyframe rule of ``options`` (the
-    pipeline picks its keyframes itself: their number is in the summary)."""
-    r = {**DEMO_RENDER, **render_kwargs}
-    opt = demo_options() if options is None else options
-    frames = int(r["laps"]) * int(r["keyframes_per_lap"]) * int(r["frames_per_keyframe"])
-    rule = (f"every {opt.keyframe_every} frames" if opt.keyframe_every else
-            f"VINS's rule, every {opt.keyframe_distance:g} m or {opt.keyframe_angle:g} deg")
-    used = f" (the first {opt.max_frames} used)" if opt.max_frames and opt.max_frames < frames else ""
-    return (f"synthetic revisit sequence: {r['laps']} laps, {frames} frames{used} {r['width']}x{r['height']}, "
-            f"drifted VIO poses, ground truth; keyframes by {rule}")
-
-
-def demo_sequence(seed: int = 0, **render_kwargs):
-    """The demo's ``testing.SyntheticSequence`` (``DEMO_RENDER`` updated by ``render_kwargs``)."""
-    from ..testing.synthetic import render_loop_sequence
-
-    kw = dict(DEMO_RENDER)
-    kw.update(render_kwargs)
-    return render_loop_sequence(seed=seed, **kw)
-
-
-def demo_config(seq):
-    """A ``TrackerConfig`` for a ``SyntheticSequence``: its camera and size, 100 features 20 px
-    apart, every frame published (``freq`` 100 Hz above the render's rate), no CLAHE."""
-    from ..config import TrackerConfig
-
-    H, W = int(seq.images.shape[-2]), int(seq.images.shape[-1])
-    return TrackerConfig(path="demo (synthetic revisit sequence)", image_width=W, image_height=H,
-                         camera=seq.camera, max_cnt=100, min_dist=20, freq=100, F_threshold=1.0, equalize=False)
-
-
-def demo_options(**changes) -> LoopOptions:
-    """The demo's :class:`LoopOptions` (``DEMO_OPTIONS``) with ``changes`` (any option)."""
-    return LoopOptions(**{**DEMO_OPTIONS, **changes})
-
-
-def demo_loop(out: Optional[PathLike] = "out/demo_loop", options: Optional[LoopOptions] = None, *,
-              two_sequences: bool = False, sequence=None, seed: int = 0, **render_kwargs) -> LoopRun:
-    """``torch-frontend demo --loop``: render the synthetic revisit sequence (``demo_sequence``:
-    a room textured with the package's photo, two laps, exact poses, drifted VIO), run
-    :func:`run_loop` on it with its drifted VIO poses as the input poses, its true poses as the
-    ground truth and its camera-to-body extrinsic, and write the outputs into ``out`` (None:
-    nothing written).
-
-    Args:
-        options: the run's options (default :func:`demo_options`); ``R_ic``/``t_ic`` default to
-            the render's.
-        two_sequences: the two laps become two input streams (sequences 1 and 2) that share one
-            map (merged by their first loop) or, with ``options.separate_graphs``, keep one
-            graph each.
-        sequence: an already rendered ``SyntheticSequence`` (else ``demo_sequence(seed, ...)``).
-        seed: seed of the render.
-        render_kwargs: override ``DEMO_RENDER`` (e.g. smaller ``width``/``height``).
-    """
-    from ..geometry import R_to_quat
-    from ..trajectory import Trajectory
-
-    opt = demo_options() if options is None else options
-    opt.check()  # before the render, as the device
-    resolve_device(opt.device)
-    t0 = _time.perf_counter()
-    seq = demo_sequence(seed, **render_kwargs) if sequence is None else sequence
-    t_render = _time.perf_counter() - t0
-    opt = replace(opt, R_ic=seq.R_ic.cpu() if opt.R_ic is None else opt.R_ic,
-                  t_ic=seq.t_ic.cpu() if opt.t_ic is None else opt.t_ic)
-    cfg = demo_config(seq)
-    times = np.asarray(seq.times.cpu(), dtype=np.float64)
-    imgs = np.asarray(seq.images.cpu())
-
-    def traj(T, R, sl):
-        return Trajectory(torch.as_tensor(times[sl], dtype=_F64), torch.as_tensor(T, dtype=_F64).cpu()[sl],
-                          R_to_quat(torch.as_tensor(R, dtype=_F64).cpu()[sl]))
-
-    n = len(times) // 2
-    parts = [slice(0, n), slice(n, None)] if two_sequences else [slice(0, None)]
-    sources = [ArraySequence(imgs[sl], times[sl], name=f"demo{'' if len(parts) == 1 else f'_lap{i + 1}'}")
-               for i, sl in enumerate(parts)]
-    poses = [traj(seq.T_vio, seq.R_vio, sl) for sl in parts]
-    gts = [traj(seq.T_gt, seq.R_gt, sl) for sl in parts]
-    extra = {"demo": {"render_seconds": round(t_render, 6), "frames": int(len(times)),
-                      "size": [cfg.image_width, cfg.image_height], "two_sequences": bool(two_sequences)}}
-    return run_loop(cfg, sources, poses, out, opt, ground_truth=gts, extra_summary=extra)

@@ -130,7 +130,7 @@ class LoopCheckpoints:
     """
 
     def __init__(self, out, fingerprint: Dict[str, str], every: Optional[int], resume: bool):
-        from .._atomic import StagedFolder
+        from .._atomic import StagedFolder, make_folders, remove_empty_folders
         from ..loop.report import LEGACY_OUTPUTS
 
         out = Path(out)
@@ -140,9 +140,14 @@ class LoopCheckpoints:
 
             warnings.warn(f"--resume: no checkpoint of an interrupted run of {out} found: starting from the first "
                           f"frame", DataWarning, stacklevel=3)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        self.stage = StagedFolder(out, "loop", LEGACY_OUTPUTS,
-                                  adopt=None if self.resumed is None else self.resumed.stage)
+        # the folders made here are removed again, while empty, when the run fails (__exit__)
+        self._created = make_folders(out.parent)
+        try:
+            self.stage = StagedFolder(out, "loop", LEGACY_OUTPUTS,
+                                      adopt=None if self.resumed is None else self.resumed.stage)
+        except BaseException:
+            remove_empty_folders(self._created)
+            raise
         self.writer = ckpt.Checkpointer(self.stage.path, fingerprint, every, self.resumed)
         self.rank_stage = None
         self._start()
@@ -221,4 +226,7 @@ class LoopCheckpoints:
             exc.resumable = True  # the CLI's message: rerun with --resume
         else:
             self.stage.abort()
+            from .._atomic import remove_empty_folders
+
+            remove_empty_folders(getattr(self, "_created", ()))
         return False

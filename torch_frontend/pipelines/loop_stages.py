@@ -30,17 +30,18 @@ KeyframePoints = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 # poses and times
 
 
-def as_trajectory(x, what: str):
+def as_trajectory(x, what: str, times=None):
     """A ``Trajectory`` from a ``Trajectory``, a ``(time, t, q)`` tuple or a trajectory file
-    (``trajectory.read_trajectory``: TUM, VINS csv, EuRoC ground truth); ``what`` names it in
-    errors. Raises ``DataError`` for a file without poses."""
+    (``trajectory.read_trajectory``: TUM, VINS csv, EuRoC ground truth, KITTI; ``times``: the
+    seconds of a KITTI file's lines, its sequence's frames); ``what`` names it in errors. Raises
+    ``DataError`` for a file without poses."""
     from ..trajectory import Trajectory, read_trajectory
 
     if isinstance(x, Trajectory):
         return x
     if isinstance(x, tuple) and len(x) == 3:
         return Trajectory(*(torch.as_tensor(v, dtype=_F64) for v in x))
-    traj = read_trajectory(x)
+    traj = read_trajectory(x, times=times)
     if traj.time.shape[0] == 0:
         raise DataError(f"{x}: {what} file has no poses")
     return traj

@@ -8,7 +8,9 @@ Convention:
     others' items without decoding them), ``prefetch`` rows ahead each; rows come back in order
     (a small reorder buffer makes sure). This process builds the batches from the rows with
     ``MultiStream``'s rules, so the batches are the same as ``io.MultiStream``'s: the same steps,
-    ``alive`` masks, skipped frames (``skip_bad``), errors and messages, raised at the same step.
+    ``alive`` masks, skipped frames (``skip_bad``), errors and messages, raised at the same step (a
+    bad frame's ``BadFrameError`` names the pipelines' ``skip_bad_frames``, ``MultiStream``'s the
+    readers' ``skip_bad``).
     An error raised by a reader (not a bad frame) travels as the exception itself and is raised
     where ``MultiStream`` would raise it.
 
@@ -37,7 +39,7 @@ from typing import Sequence as Seq
 import numpy as np
 import torch
 
-from ..errors import DataError
+from ..errors import BadFrameError, DataError
 from ..io.multistream import Batch, MultiStream, lockstep, ns_to_seconds, padded_shape, stack_images
 
 __all__ = ["FrameStream", "DEFAULT_PREFETCH"]
@@ -237,8 +239,8 @@ class FrameStream(MultiStream):
                     return Frame(s[1], s[2], img, s[3])
                 if s[0] == _RAISE:
                     raise s[1]
-                if not getattr(seq, "skip_bad", False):
-                    raise DataError(s[2])
+                if not getattr(seq, "skip_bad", False):  # the pipelines' option: the CLI maps it to its flag
+                    raise BadFrameError.naming(s[2], "skip_bad_frames")
                 self._skipped[b].append((s[1], s[2]))
 
         try:

@@ -35,7 +35,7 @@ from ..errors import ConfigError
 __all__ = ["RIG_KEYS", "RIG_KINDS", "read_rig"]
 
 #: the input kinds of an entry (one per entry) and the other keys it may hold
-RIG_KINDS = ("euroc", "images", "bag")
+RIG_KINDS = ("euroc", "images", "bag", "kitti")
 RIG_KEYS = (*RIG_KINDS, "config", "camera", "topic", "fps")
 #: the kind each per-input reader option belongs to
 _OPTION_KIND = {"camera": "euroc", "topic": "bag", "fps": "images"}

@@ -32,8 +32,9 @@ __all__ = ["STATE_DICT_VERSION", "config_fingerprint", "load_tracker_state_dict"
 #: the format of :func:`tracker_state_dict`; a dict of another version is refused
 STATE_DICT_VERSION = 1
 _KIND = "torch_frontend.FeatureTracker"
-# config fields that name files, not settings: a config moved elsewhere is the same config
-_CONFIG_PATHS = ("path", "raw", "cam0_calib", "cam1_calib")
+# config fields that name files (and where the settings came from), not settings: a config moved
+# elsewhere is the same config
+_CONFIG_PATHS = ("path", "raw", "cam0_calib", "cam1_calib", "origin")
 
 
 def _plain(v: Any) -> str:

@@ -26,7 +26,7 @@ import torch.utils._pytree as pytree
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
-from ..fused import resolve_backend, resolve_corner_backend
+from ..fused import resolve_backend, resolve_clahe_backend, resolve_corner_backend
 from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
@@ -234,6 +234,10 @@ class FeatureTracker:
             and positions bit-identical to OpenCV's ``calcOpticalFlowPyrLK``), ``"fused"`` (an error
             where they cannot run) or ``"tensor"`` (the tensor kernels). Resolved once here
             (``self.lk_backend``); checkpoints record it (``state_dict``). ``docs/kernels.md``.
+        clahe_backend: CLAHE's kernel (mono with ``equalize``): None / ``"auto"`` (default: the
+            device's ``_tuning`` strategy: the one fused op ``torch_frontend::clahe`` on the CPU and
+            CUDA), ``"fused"`` (an error where it cannot run) or ``"tensor"`` (``equalize``'s tensor
+            CLAHE). Both give OpenCV's bits. Resolved once here (``self.clahe_backend``).
         corner_backend: goodFeaturesToTrack's kernels, as ``lk_backend``: None / ``"auto"``
             (default: the fused op on the CPU and CUDA), ``"fused"`` or ``"tensor"``; the same
             corners either way (``self.corner_backend``; ``docs/kernels.md``, "Detection").
@@ -265,6 +269,7 @@ class FeatureTracker:
         differentiable: bool = False,
         grad_mode: str = "implicit",
         lk_backend: Optional[str] = None,
+        clahe_backend: Optional[str] = None,
         corner_backend: Optional[str] = None,
     ):
         configs = stream_configs(config, num_streams)  # B configs; one given is every stream's
@@ -282,11 +287,14 @@ class FeatureTracker:
         masks = self._stream_masks(fisheye_mask)
         #: the pyramid's and the LK's kernels, ``"fused"`` or ``"tensor"`` (resolved for this device)
         self.lk_backend = resolve_backend(lk_backend, self.device)
+        #: CLAHE's kernel, ``"fused"`` or ``"tensor"`` (resolved for this device; the same bits)
+        self.clahe_backend = resolve_clahe_backend(clahe_backend, self.device)
         #: goodFeaturesToTrack's kernels, ``"fused"`` or ``"tensor"`` (resolved; the same corners)
         self.corner_backend = resolve_corner_backend(corner_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
                        lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
-                       lk_backend=self.lk_backend, corner_backend=self.corner_backend)
+                       lk_backend=self.lk_backend, clahe_backend=self.clahe_backend,
+                       corner_backend=self.corner_backend)
         built: Dict[Tuple[int, int], TrackerParams] = {}
         for b, c in enumerate(configs):
             if (id(c), id(masks[b])) not in built:
@@ -304,7 +312,7 @@ class FeatureTracker:
             kwargs = dict(device=self.device, mode=mode, dtype=dtype, seed=seed, capturable=self.capturable,
                           lk_iter_budget=lk_iter_budget, lk_tail_share=lk_tail_share,
                           differentiable=self.differentiable, grad_mode=grad_mode, lk_backend=self.lk_backend,
-                          corner_backend=self.corner_backend)
+                          clahe_backend=self.clahe_backend, corner_backend=self.corner_backend)
             self._groups = tuple(groups)
             self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
                                                  **kwargs) for g in groups)

@@ -62,6 +62,10 @@ class TrackerParams:
         lk_backend: the pyramid's and the LK's kernels, resolved (``fused.resolve_backend``):
             ``"fused"`` (one custom op each, OpenCV's bits; ``FeatureTracker``'s default on the CPU
             and CUDA) or ``"tensor"`` (the tensor kernels; the default of params built by hand).
+        clahe_backend: CLAHE's kernel, resolved (``fused.resolve_clahe_backend``): ``"fused"`` (the
+            one op ``torch_frontend::clahe``; ``FeatureTracker``'s default on the CPU and CUDA) or
+            ``"tensor"`` (``equalize``'s tensor CLAHE; the default of params built by hand). The
+            same bits either way.
         corner_backend: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``):
             ``"fused"`` (the ``good_features`` op; ``FeatureTracker``'s default on the CPU and CUDA)
             or ``"tensor"`` (``corners/``; the default of params built by hand). The same corners.
@@ -87,6 +91,7 @@ class TrackerParams:
     differentiable: bool = False
     lk_grad_mode: str = "implicit"
     lk_backend: str = "tensor"
+    clahe_backend: str = "tensor"
     corner_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2

@@ -65,9 +65,11 @@ def equalize(img: Tensor, params: TrackerParams) -> Tensor:
         return img
     gx, gy = params.clahe_tile_grid
     if params.differentiable:  # a float image with a graph: the 8-bit values and a slope
-        out = _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable)
+        out = _clahe_straight_through(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable,
+                                      backend=params.clahe_backend)
     else:
-        out = _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable).image
+        out = _clahe_impl(img[:, 0], params.clahe_clip_limit, gx, gy, capturable=params.capturable,
+                          backend=params.clahe_backend).image
     return out.unsqueeze(1)
 
 
@@ -306,15 +308,20 @@ def set_mask(table: FeatureTable, detect: Tensor, params: TrackerParams, base_ma
     pts_s = gather_slots(_rows_of(table, rows, _mask_points(table)), order)
     cnt_s, valid_s = torch.gather(cnt, 1, order), torch.gather(valid, 1, order)
     n = rows.numel()
-    if base_mask is None:
+    fused = params.lk_backend == "fused"  # the fused kernels run here: setMask's op too (same bits)
+    if fused:  # the op only reads its base mask: one for every stream, no copy
+        mask = _full_mask(height, width, dev) if base_mask is None else base_mask.reshape(1, height, width)
+    elif base_mask is None:
         mask = torch.full((n, height, width), 255, dtype=torch.uint8, device=dev)
     else:
         mask = base_mask.expand(n, height, width).clone()  # written into: one copy per stream
     with stage("mask"):
-        res = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask, capturable=params.capturable)
+        res = _distance_mask_impl(pts_s, cnt_s, valid_s, float(params.min_dist), mask, capturable=params.capturable,
+                                  backend="fused" if fused else "tensor")
     order = _to_streams(detection, order, _slot_rows(B, K, dev))
     keep = _to_streams(detection, valid_s & res.keep, table.valid)
-    overflow = None if res.overflow is None else res.overflow & detect
+    # the fused op is exact (no budget): its overflow is all False, left out
+    overflow = None if res.overflow is None or fused else res.overflow & detect
     return table.permute(order).compact(keep), Detection(rows, res.mask, detection.detect), overflow
 
 
@@ -329,6 +336,13 @@ def _setmask_order(valid: Tensor, track_cnt: Tensor) -> Tensor:
     descending, ties by slot (stable), empty slots last."""
     key = torch.where(valid, track_cnt, torch.full_like(track_cnt, -1))
     return torch.sort(-key, dim=1, stable=True).indices
+
+
+@cached(8)
+def _full_mask(height: int, width: int, device) -> Tensor:
+    """``(1, H, W)`` uint8 of 255 on ``device``, built once: the fused setMask's base mask without a
+    fisheye mask (read only)."""
+    return torch.full((1, height, width), 255, dtype=torch.uint8, device=device)
 
 
 @cached(32)
