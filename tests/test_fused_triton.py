@@ -106,7 +106,7 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     report = json.loads(out.strip().splitlines()[-1])
     assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "clahe_lut",
                            "clahe_blend", "mask_decide", "mask_draw", "ransac_score",
-                           "ransac_score_state"}, sorted(report)
+                           "ransac_score_state", "corners_response", "corners_candidates"}, sorted(report)
     for name, r in report.items():
         assert r["fma"] == [], (name, r)
         assert r["approx"] == 0 and r["div_full"] == 0 and r["ftz"] == 0, (name, r)

@@ -47,6 +47,14 @@ def _corners():
                                                                 capturable=cap)
 
 
+def _corners_fused():
+    from torch_frontend.corners import _good_features_impl
+
+    img, mc = _images(), torch.tensor([6, 3])
+    return _good_features_impl, lambda cap: _good_features_impl(img, mc, 0.01, 3.0, None, False, 3, 0.04, 6,
+                                                                capturable=cap, backend="fused")
+
+
 def _masks(backend="tensor"):
     from torch_frontend.masks import _distance_mask_impl
 
@@ -89,6 +97,7 @@ KERNELS = {
     "equalize": ("torch_frontend.equalize", _clahe),
     "equalize:fused": ("torch_frontend.equalize", _clahe_fused),  # the fused op behind the same _impl
     "corners": ("torch_frontend.corners", _corners),
+    "corners:fused": ("torch_frontend.corners", _corners_fused),  # the fused op behind the same _impl
     "masks": ("torch_frontend.masks", _masks),
     "lk": ("torch_frontend.lk", _lk),
     "ransac": ("torch_frontend.ransac", _ransac),

@@ -97,6 +97,11 @@ class Strategy:
     #: or ``"tensor"`` (``ransac/scoring.py`` and the scans of ``eager.py`` / ``capturable.py``).
     #: ``find_fundamental(backend=...)`` overrides it; ``fused.resolve_ransac_backend`` resolves it
     ransac_backend: str = "tensor"
+    #: goodFeaturesToTrack of 8-bit frames (min eigenvalue, block 3): ``"fused"``, one custom op
+    #: (``fused/corners_op.py``: numba on the CPU, Triton + the capturable selection on CUDA; the
+    #: tensor path's bits, response only where the mask matters), or ``"tensor"`` (``corners/``).
+    #: bench_corners.py: see benchmarks/results/corners.json. A tracker overrides it (``corner_backend=``)
+    corner_backend: str = "tensor"
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -166,6 +171,7 @@ CPU = Strategy(
     lk_backend="fused",
     clahe_backend="fused",
     ransac_backend="fused",
+    corner_backend="fused",
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -189,8 +195,9 @@ ONE_PASS = Strategy(
     clahe_block_keys=True,
 )
 
-#: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE and RANSAC's scoring
-CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", ransac_backend="fused")
+#: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE, RANSAC's scoring and detection
+CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", ransac_backend="fused",
+                           corner_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)

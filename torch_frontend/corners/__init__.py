@@ -54,10 +54,25 @@ from .selection_capturable import (  # noqa: F401
     _pixel_table,
     _resolve_dense,
     _select_corners_capturable,
+    _select_from_keys,
     _stream_offsets,
 )
 
 __all__ = ["min_eigen_response", "harris_response", "good_features_to_track"]
+
+
+def _select_keys_gftt(keys, mc, min_distance, H, W, K):
+    """The fused op's CUDA selection: :func:`_select_from_keys` with :data:`GFTT_BUDGET`, float32 points."""
+    return _select_from_keys(keys, mc, min_distance, H, W, K, GFTT_BUDGET, torch.float32)
+
+
+def _register_selection() -> None:
+    from ..fused.corners_op import set_selection
+
+    set_selection(_select_keys_gftt)
+
+
+_register_selection()
 
 
 def min_eigen_response(img: torch.Tensor, block_size: int = 3) -> torch.Tensor:
@@ -197,6 +212,7 @@ def _good_features_impl(
     *,
     capturable: bool = False,
     budget: Optional[GreedyBudget] = None,
+    backend: str = "tensor",
 ) -> CornersResult:
     """:func:`good_features_to_track` without input checks (the kernel's ``_impl``).
 
@@ -213,6 +229,10 @@ def _good_features_impl(
             count independent of B and of the data: the ``budget.block`` best candidates per
             stream and a fixed number of greedy rounds (:func:`_select_corners_capturable`).
         budget: the fixed work of the capturable path (default :data:`GFTT_BUDGET`).
+        backend: ``"fused"``: the ``torch_frontend::good_features`` op where it applies
+            (``fused.corners_op.fused_corners_applies``: uint8, min eigenvalue, block 3; the
+            budget the default one), the same corners; ``"tensor"`` (default): the tensor kernels.
+            Resolved by the caller (``fused.resolve_corner_backend``).
 
     Returns:
         A :class:`CornersResult`: ``pts (B, K, 2)`` float and ``valid (B, K)`` bool as
@@ -220,6 +240,11 @@ def _good_features_impl(
         the budget was too small for OpenCV's exact answer; elsewhere the result equals the default
         path's), None on the default path (exact).
     """
+    if backend == "fused" and budget is None:
+        res = _fused_gftt(img, max_corners, quality_level, min_distance, mask, use_harris, block_size, capacity,
+                          capturable)
+        if res is not None:
+            return res
     if not capturable:
         resp = _response_impl(img, use_harris, block_size, k)[:, 0].detach()
         return CornersResult(*_select_corners(resp, max_corners, quality_level, min_distance, mask, capacity), None)
@@ -233,6 +258,30 @@ def _good_features_impl(
     return CornersResult(*_select_corners_capturable(resp, max_corners, quality_level, min_distance, mask,
                                                      int(capacity), GFTT_BUDGET if budget is None else budget,
                                                      finite=img.dtype == torch.uint8 and math.isfinite(k)))
+
+
+def _fused_gftt(img: torch.Tensor, max_corners: torch.Tensor, quality_level: float, min_distance: float,
+                mask: torch.Tensor | None, use_harris: bool, block_size: int, capacity: int | None,
+                capturable: bool) -> Optional[CornersResult]:
+    """The fused op's result for :func:`_good_features_impl`'s arguments, or None where it does not apply
+    (or, on the default path on CUDA, where its fixed selection budget overflowed: the exact tensor
+    path then runs)."""
+    from ..fused.corners_op import fused_corners_applies, good_features_op
+
+    if not fused_corners_applies(img, use_harris, block_size, quality_level):
+        return None
+    if capacity is None:
+        if capturable:
+            raise ValueError("_good_features_impl: capturable=True needs an int capacity (the output size)")
+        capacity = int(max_corners.max()) if max_corners.numel() else 0  # host sync, as the tensor path
+    x = img[:, 0] if img.dim() == 4 else img
+    pts, valid, overflow = good_features_op(x, max_corners, mask, int(capacity), float(quality_level),
+                                            float(min_distance))
+    if capturable:
+        return CornersResult(pts, valid, overflow)
+    if img.device.type != "cpu" and bool(overflow.any()):  # the CPU kernel is exact (never overflows)
+        return None
+    return CornersResult(pts, valid, None)
 
 
 def _gftt_from_response(

@@ -408,6 +408,31 @@ def _select_corners_capturable(
         idx = (HW - 1) - srt.indices[:, :Cb]
         cvalid = srt.values[:, :Cb] != float("-inf")
 
+    return _finish(idx, cvalid, n_cand, mc, min_distance, H, W, K, budget, Cb, resp.dtype)
+
+
+def _select_from_keys(bits: torch.Tensor, mc: torch.Tensor, min_distance: float, H: int, W: int, K: int,
+                      budget: GreedyBudget, dtype: torch.dtype) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_select_corners_capturable` from the candidates' keys ``bits (B, H * W)`` int32 (a
+    candidate's float32 response bits, > 0; 0 elsewhere), as the fused CUDA op's kernels write them
+    (``fused/_triton_corners.py``): the same top-k and greedy windows, so the same result and flag.
+    ``mc`` (B,) int64 >= 0; ``K >= 1``; ``dtype`` of ``pts``."""
+    HW = H * W
+    mc = mc.clamp_max(K)
+    Cb = min(budget.block, HW)
+    n_cand = (bits != 0).sum(1)
+    ib = max(1, (HW - 1).bit_length())
+    idx, cvalid = _top_keys(bits, Cb, ib)
+    return _finish(idx, cvalid, n_cand, mc, min_distance, H, W, K, budget, Cb, dtype)
+
+
+def _finish(idx: torch.Tensor, cvalid: torch.Tensor, n_cand: torch.Tensor, mc: torch.Tensor, min_distance: float,
+            H: int, W: int, K: int, budget: GreedyBudget, Cb: int,
+            dtype: torch.dtype) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The greedy pass and the compaction of :func:`_select_corners_capturable` from the ranked
+    candidates ``idx`` (B, Cb) raster indices and ``cvalid`` (B, Cb) (see there)."""
+    B = idx.shape[0]
+    dev = idx.device
     # int32 positions while the raster index y * (W + 1) + x fits
     cdt = torch.int32 if H * (W + 1) < (1 << 31) else torch.int64
     xy = _pixel_table(H, W, cdt, dev).index_select(0, idx.reshape(-1)).view(B, Cb, 3)
@@ -431,8 +456,8 @@ def _select_corners_capturable(
     keep = accepted & (cum <= mc[:, None])
     # compact into (B, K): kept corners at b * K + rank, the rest into one dump slot
     slot = torch.where(keep, cum + _stream_offsets(B, K, dev), B * K)
-    out = torch.zeros(B * K + 1, 2, dtype=resp.dtype, device=dev)
-    out.index_put_((slot.view(-1),), xy[..., :2].reshape(-1, 2).to(resp.dtype))
+    out = torch.zeros(B * K + 1, 2, dtype=dtype, device=dev)
+    out.index_put_((slot.view(-1),), xy[..., :2].reshape(-1, 2).to(dtype))
     n = torch.minimum(n_acc, mc)
     valid = _iota(K, dev) < n[:, None]
     return out[:B * K].view(B, K, 2), valid, overflow

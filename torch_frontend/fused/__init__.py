@@ -32,7 +32,8 @@ from ..errors import ConfigError
 from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
 
 __all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
-           "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_ransac_backend"]
+           "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_ransac_backend",
+           "resolve_corner_backend"]
 
 #: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
 BACKENDS = ("auto", "fused", "tensor")
@@ -225,4 +226,60 @@ def resolve_ransac_backend(requested: Optional[str], device) -> str:
         raise ConfigError(f"ransac_backend='fused' cannot run on {dev.type}: {why}")
     warn_once(f"torch_frontend: the fused RANSAC scoring cannot run on {dev.type} ({why}); the tensor scoring "
               "runs instead (docs/kernels.md)")
+    return "tensor"
+
+
+# ---------------------------------------------------------------------------------------------
+# detection (``torch_frontend::good_features``, fused/corners_op.py)
+
+
+def _probe_corners(kind: str) -> Optional[str]:
+    if kind == "cpu":
+        try:
+            from . import _numba_corners, corners_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor path
+            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return None
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            return None  # the simulated device, fakes: the CPU kernel runs
+        try:
+            from . import _triton_corners, corners_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001
+            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        from .selfcheck import corners_selfcheck
+
+        return corners_selfcheck()
+    return f"no fused kernel for device type {kind!r}"
+
+
+def resolve_corner_backend(requested: Optional[str], device) -> str:
+    """The detection backend (``"fused"`` or ``"tensor"``) on ``device`` for ``requested``, with
+    :func:`resolve_backend`'s semantics: ``None`` / ``"auto"``: ``_tuning``'s ``corner_backend`` for
+    the device, falling back to the tensor path with one warning where the fused op cannot run;
+    ``"fused"``: the op or a ``ConfigError`` saying why not; ``"tensor"``: ``corners/``."""
+    from .. import _tuning
+
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"corner_backend must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and _tuning.for_device(dev).corner_backend != "fused":
+        return "tensor"
+    key = ("corners", dev.type)
+    with _LOCK:
+        known = key in _STATUS
+        why = _STATUS.get(key)
+    if not known:
+        why = _probe_corners(dev.type)
+        with _LOCK:
+            why = _STATUS.setdefault(key, why)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"corner_backend='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused detection cannot run on {dev.type} ({why}); the tensor path runs "
+              "instead (the same corners, docs/kernels.md)")
     return "tensor"

@@ -601,3 +601,9 @@ def _compile_all(target, out: Dict[str, str]) -> None:
         src = ASTSource(fn=kern, signature=_triton_ransac.SIGNATURES, constexprs=_triton_ransac.constexprs(has_state))
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_ransac.NUM_WARPS}).asm["ptx"]
+    from . import _triton_corners  # detection: the response and the candidates' keys
+
+    for name, kern in _triton_corners.KERNELS.items():
+        src = ASTSource(fn=kern, signature=_triton_corners.SIGNATURES[name], constexprs=_triton_corners.CONSTEXPRS[name])
+        out[name] = triton.compile(src, target=target, options={
+            **_COMPILE_OPTIONS, "num_warps": _triton_corners.NUM_WARPS}).asm["ptx"]

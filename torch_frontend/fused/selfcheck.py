@@ -24,7 +24,7 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
-__all__ = ["case", "digest", "cuda_selfcheck", "EXPECTED", "run_case"]
+__all__ = ["case", "digest", "cuda_selfcheck", "EXPECTED", "run_case", "corners_selfcheck", "run_corners_case"]
 
 #: sha256 of the CPU kernels' outputs on :func:`case` (regenerate with ``python -m torch_frontend.fused.selfcheck``
 #: after a change to the kernels that is meant to move bits; tests/test_fused.py checks it)
@@ -131,6 +131,40 @@ def cuda_selfcheck(device=None) -> Optional[str]:
     return None
 
 
+def run_corners_case(device) -> str:
+    """``torch_frontend::good_features`` on :func:`case`'s two frames on ``device`` (no mask, and a mask
+    with a hole and a cut-off border; minimum distances 8, 3 and 0.5), as one :func:`digest`."""
+    from .corners_op import good_features_op
+
+    img = case()["prev"].to(device)
+    B, H, W = img.shape
+    mask = torch.ones((B, H, W), dtype=torch.bool)
+    mask[0, 20:40, 30:60] = False
+    mask[1, :, :12] = False
+    mask = mask.to(device)
+    mc = torch.tensor([25, 9], device=device)
+    outs = []
+    for m in (None, mask):
+        for md in (8.0, 3.0, 0.5):
+            outs += list(good_features_op(img, mc, m, 25, 0.01, md))
+    return digest(*outs)
+
+
+def corners_selfcheck(device=None) -> Optional[str]:
+    """None when the fused detection's CUDA kernels give the CPU kernel's bits on
+    :func:`run_corners_case` (computed here, on the CPU: the CPU kernel is held equal to the tensor
+    path and cv2 by the tests), else why not."""
+    dev = torch.device("cuda", torch.cuda.current_device()) if device is None else torch.device(device)
+    try:
+        got = run_corners_case(dev)
+        want = run_corners_case("cpu")
+    except Exception as e:  # noqa: BLE001 - a kernel that fails to compile or launch: not usable
+        return f"the CUDA detection kernels failed their self-check ({type(e).__name__}: {str(e).splitlines()[0][:200]})"
+    if got != want:
+        return f"the CUDA detection kernels' self-check gave other bits than the CPU kernel ({got[:12]} != {want[:12]})"
+    return None
+
+
 if __name__ == "__main__":  # print the CPU kernels' digest (to store in EXPECTED); --warm: compile them quietly
     import sys
     import time
@@ -141,6 +175,7 @@ if __name__ == "__main__":  # print the CPU kernels' digest (to store in EXPECTE
         from .ransac_op import cuda_selfcheck as _ransac_check
 
         _ransac_check("cpu")  # compiles the F-RANSAC scoring kernel too (its CPU run against itself)
+        run_corners_case("cpu")
         print(f"torch_frontend: the fused CPU kernels are compiled and cached ({time.perf_counter() - t0:.1f} s)")
     else:
         print(got)

@@ -66,6 +66,9 @@ class TrackerParams:
             one op ``torch_frontend::clahe``; ``FeatureTracker``'s default on the CPU and CUDA) or
             ``"tensor"`` (``equalize``'s tensor CLAHE; the default of params built by hand). The
             same bits either way.
+        corner_backend: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``):
+            ``"fused"`` (the ``good_features`` op; ``FeatureTracker``'s default on the CPU and CUDA)
+            or ``"tensor"`` (``corners/``; the default of params built by hand). The same corners.
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -89,6 +92,7 @@ class TrackerParams:
     lk_grad_mode: str = "implicit"
     lk_backend: str = "tensor"
     clahe_backend: str = "tensor"
+    corner_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream

@@ -368,7 +368,8 @@ def add_points(table: FeatureTable, img: Tensor, detection: Detection, params: T
     with stage("detection"):
         res = _good_features_impl(_rows_of(table, rows, img), n_max, params.gftt_quality_level, float(params.min_dist),
                                   detection.mask != 0, False, params.gftt_block_size, params.gftt_harris_k,
-                                  table.capacity if params.capturable else None, capturable=params.capturable)
+                                  table.capacity if params.capturable else None, capturable=params.capturable,
+                                  backend=params.corner_backend)
     if detection.detect is not None:  # capturable: every stream ran
         return table.append(res.pts, res.valid & detection.detect.unsqueeze(-1)), res.overflow & detection.detect
     pts, valid = res.pts, res.valid
