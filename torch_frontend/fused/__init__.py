@@ -124,21 +124,23 @@ _CLAHE_STATUS: dict = {}  # device kind -> None (available) or why not
 
 
 def clahe_unavailable_reason(device) -> Optional[str]:
-    """Why the fused CLAHE cannot run on ``device``, or None when it can (probed once per device type:
-    the fused kernels' availability, :func:`unavailable_reason`, and the CLAHE kernels' modules)."""
+    """Why the fused CLAHE cannot run on ``device``, or None when it can: the fused kernels'
+    availability (:func:`unavailable_reason`, not cached again here, so that it stays the one answer),
+    then the CLAHE kernels' modules (probed once per device type)."""
     kind = torch.device(device).type
+    why = unavailable_reason(device)
+    if why is not None or not (kind == "cpu" or (kind == "cuda" and torch.cuda.is_available())):
+        return why
     with _LOCK:
         if kind in _CLAHE_STATUS:
             return _CLAHE_STATUS[kind]
-    why = unavailable_reason(device)
-    if why is None and (kind == "cpu" or (kind == "cuda" and torch.cuda.is_available())):
-        try:
-            if kind == "cpu":
-                from . import _numba_clahe  # noqa: F401
-            else:
-                from . import _triton_clahe  # noqa: F401
-        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor CLAHE
-            why = f"the CLAHE kernel cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+    try:
+        if kind == "cpu":
+            from . import _numba_clahe  # noqa: F401
+        else:
+            from . import _triton_clahe  # noqa: F401
+    except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor CLAHE
+        why = f"the CLAHE kernel cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
     with _LOCK:
         _CLAHE_STATUS.setdefault(kind, why)
         return _CLAHE_STATUS[kind]
