@@ -647,7 +647,7 @@ def _merge_loop(per, opt, out, job, ranks, inputs, seconds: float) -> Tuple[Dict
         "streams": len(sums),
         "graphs": len(sums),
         "shared_map": False,
-        **{k: first[k] for k in ("mode", "tracker_mode", "device", "config", "extrinsic", "keyframe_rule",
+        **{k: first[k] for k in ("mode", "up", "tracker_mode", "device", "config", "extrinsic", "keyframe_rule",
                                  "vocabulary", "load_graph")},
         "config": "; ".join(dict.fromkeys(p for s in sums for p in s["config"].split("; "))),
         "per_stream": per_stream,
