@@ -92,6 +92,10 @@ class Strategy:
     #: bits). bench_clahe.py (752x480, 1 thread): see benchmarks/results/clahe.json. A call or a tracker
     #: overrides it (``clahe_backend=``)
     clahe_backend: str = "tensor"
+    #: mono step: CLAHE -> pyramid -> LK of one frame as one op (``fused/front_op.py``) that runs the three
+    #: kernels back to back on ``front_group`` streams at a time (each stream's image and pyramid reused
+    #: while in cache), or None: three stage ops over the whole batch. Needs the fused CLAHE and LK
+    front_group: Optional[int] = None
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -160,6 +164,9 @@ CPU = Strategy(
     clahe_block_keys=False,
     lk_backend="fused",
     clahe_backend="fused",
+    # bench_grouping.py / ab_tracker.py (benchmarks/results/cache_grouping.md), 1 thread: the three
+    # kernels 0.90-0.91x stage order at B = 16-64 in groups of 1-2 streams, 0.95 of 4, 0.98-1.00 of 8
+    front_group=1,
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
