@@ -20,8 +20,8 @@ from torch_frontend import _tuning
 from torch_frontend.fused.clahe_op import clahe_op
 from torch_frontend.fused.front_op import front_op
 from torch_frontend.fused.ops import lk_op, pyramid_op
-from torch_frontend.tracker import track_step
 from torch_frontend.testing.dispatch_count import OpCounter
+from torch_frontend.tracker import track_step
 
 from .conftest import REPO, load_gray, sample_frames
 
