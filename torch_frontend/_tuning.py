@@ -166,8 +166,8 @@ CPU = Strategy(
     clahe_backend="fused",
     # bench_grouping.py (benchmarks/results/cache_grouping.md), 1 thread: the three kernels 0.89-0.93x
     # stage order at B = 16-64 one stream at a time, 0.89-0.94 in groups of 2, 0.93-0.97 of 4, 0.91-1.00
-    # of 8; ab_tracker.py, the whole step against front_group=None: 0.91-0.98 at B = 16, 0.92-1.01 at
-    # B = 64 (noise ~3 %); G = 2 alike, G = 4 0.93-0.95 behind G = 1
+    # of 8; ab_tracker.py, the whole step against front_group=None: 0.91-1.02 at B = 16, 0.92-1.01 at
+    # B = 64 (noise of the same size); G = 2 alike, G = 4 0.93-0.95 behind G = 1
     front_group=1,
 )
 
