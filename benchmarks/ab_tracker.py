@@ -124,6 +124,11 @@ def main(argv=None) -> int:
     ap.add_argument("--windows", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    # numba's cache entries record the module that compiled them: the trees load here as ``tf_ab_new`` /
+    # ``tf_ab_ref``, and entries written so beside the sources make a later plain ``import torch_frontend``
+    # fail to load them (ModuleNotFoundError: tf_ab_new). Keep this process's numba cache apart.
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+                                                 / "torch_frontend_ab" / "numba"))
     import torch
 
     torch.set_num_threads(args.threads)

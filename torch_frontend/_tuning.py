@@ -102,6 +102,10 @@ class Strategy:
     #: tensor path's bits, response only where the mask matters), or ``"tensor"`` (``corners/``).
     #: bench_corners.py: see benchmarks/results/corners.json. A tracker overrides it (``corner_backend=``)
     corner_backend: str = "tensor"
+    #: mono step: CLAHE -> pyramid -> LK of one frame as one op (``fused/front_op.py``) that runs the three
+    #: kernels back to back on ``front_group`` streams at a time (each stream's image and pyramid reused
+    #: while in cache), or None: three stage ops over the whole batch. Needs the fused CLAHE and LK
+    front_group: Optional[int] = None
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -172,6 +176,11 @@ CPU = Strategy(
     clahe_backend="fused",
     ransac_backend="fused",
     corner_backend="fused",
+    # bench_grouping.py (benchmarks/results/cache_grouping.md), 1 thread: the three kernels 0.89-0.93x
+    # stage order at B = 16-64 one stream at a time, 0.89-0.94 in groups of 2, 0.93-0.97 of 4, 0.91-1.00
+    # of 8; ab_tracker.py, the whole step against front_group=None: 0.91-1.02 at B = 16, 0.92-1.01 at
+    # B = 64 (noise of the same size); G = 2 alike, G = 4 0.93-0.95 behind G = 1
+    front_group=1,
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC

@@ -176,6 +176,13 @@ if __name__ == "__main__":  # print the CPU kernels' digest (to store in EXPECTE
 
         _ransac_check("cpu")  # compiles the F-RANSAC scoring kernel too (its CPU run against itself)
         run_corners_case("cpu")
+        # the CPU-only front op (CLAHE -> pyramid -> LK by stream groups): compiled too, outside the digest
+        from .front_op import front_op
+        from .ops import pyramid_op
+
+        c = case()
+        front_op(c["next"], pyramid_op(c["prev"], _MAX_LEVEL, _PAD), c["pts"], c["valid"], 3.0, 8, 8, _MAX_LEVEL, _PAD,
+                 _MAX_LEVEL, _WIN, _WIN, 30, 0.01, 1e-4, 1)
         print(f"torch_frontend: the fused CPU kernels are compiled and cached ({time.perf_counter() - t0:.1f} s)")
     else:
         print(got)

@@ -453,7 +453,8 @@ class FeatureTracker:
 
     def enable_stage_times(self, enabled: bool = True) -> None:
         """Start (or stop) accumulating per-stage wall-clock times (CLAHE, pyramid, LK, RANSAC,
-        mask, detection, undistort) into ``stage_times``."""
+        mask, detection, undistort) into ``stage_times``; on the CPU a mono step's CLAHE, pyramid and
+        LK after the first frame are one op, timed as ``"front"``."""
         for m in self._members:
             m.enable_stage_times(enabled)
         self._stage.times = {} if enabled else None

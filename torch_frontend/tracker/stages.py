@@ -22,6 +22,7 @@ from typing import NamedTuple, Optional, Tuple
 
 import torch
 
+from .. import _tuning
 from .._autodiff import derivative_wanted
 from .._cache import cached
 from .._checks import gather_slots
@@ -29,7 +30,10 @@ from .._compiler import constant_result
 from ..corners import _good_features_impl
 from ..equalize import _clahe_impl, _clahe_straight_through
 from ..fused import lk_pad
+from ..fused.layout import PyramidLayout
 from ..lk import _forward_backward_impl, _track_lk_impl
+from ..lk.fused_path import fused_applies
+from ..lk.track import _level_cap
 from ..masks import _distance_mask_impl
 from ..pyramid import Pyramid, _build_pyramid_impl
 from ..ransac import _find_fundamental_impl, _seeds, opencv_threshold_confidence
@@ -81,6 +85,47 @@ def image_pyramid(img: Tensor, params: TrackerParams) -> Pyramid:
                                pad=lk_pad(params.lk_options.win_size), backend=params.lk_backend)
 
 
+def front_group(img: Tensor, prev_pyr: Optional[Pyramid], pts: Tensor, params: TrackerParams) -> Optional[int]:
+    """Streams per group of the fused front (:func:`front`), or None where the step runs CLAHE, the
+    pyramid and the LK as three stage ops over the whole batch: the device's strategy groups
+    (``_tuning.Strategy.front_group``: the CPU), the mode equalises (mono), the 8-bit path (not
+    differentiable, uint8 images) with the fused CLAHE and LK, a previous packed pyramid of this
+    frame's layout (the state; the first frame has none), and an LK call the fused op runs
+    (``fused_applies``). The same bits either way."""
+    group = _tuning.for_device(img.device).front_group
+    if group is None or not params.uses_clahe or params.differentiable or img.dtype != torch.uint8:
+        return None
+    if params.clahe_backend != "fused" or params.lk_backend != "fused" or prev_pyr is None or prev_pyr.packed is None:
+        return None
+    H, W = img.shape[-2:]
+    lay = PyramidLayout(int(H), int(W), params.lk_max_level, lk_pad(params.lk_options.win_size))
+    if prev_pyr.layout != lay or not fused_applies(prev_pyr, prev_pyr, pts, None, params.lk_options):
+        return None
+    return group
+
+
+def front(img: Tensor, prev_pyr: Pyramid, table: FeatureTable, run: Tensor, params: TrackerParams, group: int):
+    """:func:`equalize`, :func:`image_pyramid` and the LK of :func:`track_features` (mono) as the one op
+    ``torch_frontend::front`` (``fused/front_op.py``): ``group`` streams at a time, each stream's
+    image and pyramid reused while in cache. Returns ``(equalised image (B, 1, H, W), pyramid,
+    (next_pts, status, overflow))``, the three stages' values bit for bit (``overflow``: all False on
+    the capturable path, else None)."""
+    from ..fused.front_op import front_op
+
+    opts = params.lk_options
+    ww, wh = opts.win_size
+    lay = prev_pyr.layout
+    gx, gy = params.clahe_tile_grid
+    top = _level_cap(prev_pyr, prev_pyr, opts.max_level, opts.win_size)
+    pts = table.pts.detach()
+    eq, packed, nxt, st, _ = front_op(img[:, 0], prev_pyr.packed, pts, table.valid & run.unsqueeze(-1),
+                                      float(params.clahe_clip_limit), gx, gy, lay.max_level, lay.pad, top, ww, wh,
+                                      opts.max_iters, opts.eps, opts.min_eig_threshold, group)
+    pyr = Pyramid.from_packed(packed, lay.height, lay.width, lay.max_level, lay.pad)
+    of = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device) if params.capturable else None
+    return eq.unsqueeze(1), pyr, (nxt.to(table.pts.dtype), st, of)
+
+
 def select_pyramid(mask: Tensor, new: Pyramid, old: Optional[Pyramid], capturable: bool = False) -> Pyramid:
     """Per stream: ``new`` where ``mask``, else ``old``. The common case (every stream) keeps ``new``
     as it is, with its padded-level cache (one host sync to know). ``capturable``: always the
@@ -111,9 +156,32 @@ def in_border(pts: Tensor, width: int, height: int, border: int = 1) -> Tensor:
     return (x >= border) & (x < width - border) & (y >= border) & (y < height - border)
 
 
+def _lk_stage(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, lk_valid: Tensor, has_prediction: Tensor,
+              params: TrackerParams):
+    """:func:`track_features`'s LK calls: ``(next_pts, status, overflow)``."""
+    fusion = params.mode == "fusion"
+    cap = params.capturable
+    # capturable: the prediction branch runs whenever the mode can have predictions (no sync)
+    if fusion and (cap or bool(has_prediction.any())):
+        nxt_p, st_p, of_p = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, table.prediction,
+                                           params.lk_short_options, capturable=cap)
+        nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
+        use = has_prediction & (st_p.sum(1) >= params.prediction_min_tracked)
+        nxt, st = where_streams(use, nxt_p, nxt), where_streams(use, st_p, st)
+        of = None if of is None else torch.where(use, of_p, of)
+    else:
+        nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
+    if fusion and params.flow_back:
+        st, of_b = _forward_backward_impl(prev_pyr, pyr, table.pts, nxt, st, params.lk_options,
+                                          params.fusion_short_max_level, params.flow_back_threshold, True,
+                                          capturable=cap)
+        of = merge_overflow(of, of_b)
+    return nxt, st, of
+
+
 def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Tensor, tracked: Tensor,
-                   has_prediction: Tensor, params: TrackerParams, *,
-                   stage=no_stage) -> Tuple[FeatureTable, Optional[Tensor]]:
+                   has_prediction: Tensor, params: TrackerParams, *, stage=no_stage,
+                   lk: Optional[Tuple[Tensor, Tensor, Optional[Tensor]]] = None) -> Tuple[FeatureTable, Optional[Tensor]]:
     """``readImage``'s tracking part (spec §3.6 step 5-6, §6.2 step 2-3) for the ``run`` streams.
 
     LK from the previous pyramid (fusion: from the prediction with one level where the stream has
@@ -127,28 +195,15 @@ def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Te
     (``params.lk_short_options``), OpenCV's fixed point on the 8-bit pyramids; the FLOW_BACK check
     (spec §6.3) tracks back with one level from the result, starting at the points, and keeps those
     that come back within ``flow_back_threshold`` px (float differences, the norm in double, as VINS).
+    ``lk``: the LK's ``(next_pts, status, overflow)`` computed already (mono: :func:`front`).
     """
     run_slots = run.unsqueeze(-1)
-    lk_valid = table.valid & run_slots
     H, W = pyr.levels[0].shape[-2:]
-    fusion = params.mode == "fusion"
-    cap = params.capturable
-    with stage("lk"):
-        # capturable: the prediction branch runs whenever the mode can have predictions (no sync)
-        if fusion and (cap or bool(has_prediction.any())):
-            nxt_p, st_p, of_p = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, table.prediction,
-                                               params.lk_short_options, capturable=cap)
-            nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
-            use = has_prediction & (st_p.sum(1) >= params.prediction_min_tracked)
-            nxt, st = where_streams(use, nxt_p, nxt), where_streams(use, st_p, st)
-            of = None if of is None else torch.where(use, of_p, of)
-        else:
-            nxt, st, of = _track_lk_impl(prev_pyr, pyr, table.pts, lk_valid, None, params.lk_options, capturable=cap)
-        if fusion and params.flow_back:
-            st, of_b = _forward_backward_impl(prev_pyr, pyr, table.pts, nxt, st, params.lk_options,
-                                              params.fusion_short_max_level, params.flow_back_threshold, True,
-                                              capturable=cap)
-            of = merge_overflow(of, of_b)
+    if lk is not None:
+        nxt, st, of = lk
+    else:
+        with stage("lk"):
+            nxt, st, of = _lk_stage(table, prev_pyr, pyr, table.valid & run_slots, has_prediction, params)
     st = st & in_border(nxt, W, H, params.border_size)
     moved = table.replace(prev_pts=table.pts,
                           pts=torch.where(run_slots.unsqueeze(-1), nxt.to(table.pts.dtype), table.pts))

@@ -35,6 +35,8 @@ from .params import TrackerParams
 from .stages import (
     add_points,
     equalize,
+    front,
+    front_group,
     image_pyramid,
     merge_overflow,
     no_stage,
@@ -289,16 +291,23 @@ def step_impl(state: TrackerState, img: Tensor, t: Tensor, params: TrackerParams
 
 
 def _track(state: TrackerState, img: Tensor, tracked: Tensor, params: TrackerParams, stage):
-    """CLAHE, pyramid and LK (``readImage`` up to ``track_cnt += 1``) for the ``tracked`` streams.
-    Returns ``(table, pyramid, equalised image, has_prediction after this step, overflow)``."""
-    with stage("clahe"):
-        img_eq = equalize(img, params)
-    with stage("pyramid"):
-        pyr = image_pyramid(img_eq, params)
-    prev_pyr = state.prev_pyramid if state.prev_pyramid is not None else pyr
+    """CLAHE, pyramid and LK (``readImage`` up to ``track_cnt += 1``) for the ``tracked`` streams: on the
+    CPU (mono, a previous pyramid) one op that works through a group of streams at a time
+    (:func:`~.stages.front`), elsewhere three stage ops over the batch; the same bits. Returns ``(table, pyramid, equalised image, has_prediction after this step, overflow)``."""
     run = tracked & state.has_image  # streams with a previous image to track from
+    group = front_group(img, state.prev_pyramid, state.features.pts, params)
+    if group is not None:  # the CPU: the three stages as one op, a group of streams at a time
+        with stage("front"):
+            img_eq, pyr, lk = front(img, state.prev_pyramid, state.features, run, params, group)
+        prev_pyr = state.prev_pyramid
+    else:
+        with stage("clahe"):
+            img_eq = equalize(img, params)
+        with stage("pyramid"):
+            pyr = image_pyramid(img_eq, params)
+        prev_pyr, lk = (state.prev_pyramid if state.prev_pyramid is not None else pyr), None
     table, overflow = track_features(state.features, prev_pyr, pyr, run, tracked, state.has_prediction, params,
-                                     stage=stage)
+                                     stage=stage, lk=lk)
     return table, pyr, img_eq, state.has_prediction & ~run, overflow  # a prediction is consumed by its step
 
 
