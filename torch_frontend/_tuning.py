@@ -102,6 +102,11 @@ class Strategy:
     #: tensor path's bits, response only where the mask matters), or ``"tensor"`` (``corners/``).
     #: bench_corners.py: see benchmarks/results/corners.json. A tracker overrides it (``corner_backend=``)
     corner_backend: str = "tensor"
+    #: camodocal's PINHOLE lift in the tracker (``lift_normalised``): ``"fused"``, one custom op
+    #: (``fused/lift_op.py``: numba on the CPU, one Triton launch on CUDA; the tensor path's bits), or
+    #: ``"tensor"`` (``PinholeCamera._lift_impl``). Other camera models lift with the tensor path. A
+    #: tracker overrides it (``lift_backend=``)
+    lift_backend: str = "tensor"
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -172,6 +177,7 @@ CPU = Strategy(
     clahe_backend="fused",
     ransac_backend="fused",
     corner_backend="fused",
+    lift_backend="fused",
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -197,7 +203,7 @@ ONE_PASS = Strategy(
 
 #: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE, RANSAC's scoring and detection
 CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", ransac_backend="fused",
-                           corner_backend="fused")
+                           corner_backend="fused", lift_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)
