@@ -56,9 +56,11 @@ def _lift_kernel(uv_ptr, valid_ptr, par_ptr, out_ptr, N, par_stride, iters, BLOC
         dy = y * rad + tp2 * mxy + p1 * (rho2 + 2.0 * my2)
         x = mxd - dx
         y = myd - dy
-    no_dist = (k1 == 0.0) & (k2 == 0.0) & (p1 == 0.0) & (p2 == 0.0)
-    x = tl.where(no_dist & ((x - x) != 0.0), mxd, x)  # x - x: 0 for finite x, NaN for inf / NaN
-    y = tl.where(no_dist & ((y - y) != 0.0), myd, y)
+    # camodocal's noDistortion (k1 = k2 = p1 = p2 = 0: the sum of their magnitudes is 0) for a
+    # non-finite component (x - x: 0 for finite x, NaN for inf / NaN)
+    no_dist = (tl.abs(k1) + tl.abs(k2) + tl.abs(p1) + tl.abs(p2)) == 0.0
+    x = tl.where((x - x) != 0.0, tl.where(no_dist, mxd, x), x)
+    y = tl.where((y - y) != 0.0, tl.where(no_dist, myd, y), y)
     x = tl.where(ok, x, 0.0)
     y = tl.where(ok, y, 0.0)
     dt = out_ptr.dtype.element_ty
