@@ -104,10 +104,24 @@ def pinhole_of(camera) -> Optional[int]:
 
 
 def pinhole_params(camera, like: Tensor) -> Tensor:
-    """``params (n, 8)`` float64 for the op, on ``like``'s device: the camera's ``_params_like`` (its
-    cast and, for a batch, its rows; a single camera gives ``n = 1``) stacked (one kernel)."""
-    p = camera._params_like(like.new_empty((like.shape[0], 1, 2), dtype=torch.float64))
-    return torch.stack([p[n].reshape(-1) for n in PARAM_NAMES], -1)
+    """``params (n, 8)`` float64 on ``like``'s device for the op, from a camera :func:`pinhole_of`
+    accepts: a single camera's values (``n = 1``), a batch's rows (``n = B``, checked against
+    ``like (B, ...)``) or an ``index_streams`` sub-batch's rows. The values ``_params_like`` gives
+    (a cast to float64 is exact), in one ``stack`` (plus one ``index_select`` for a sub-batch)
+    instead of a cast and a reshape per parameter."""
+    from ..camera.batch import CameraBatch, _StreamRows
+
+    rows = None
+    if isinstance(camera, _StreamRows):
+        camera, rows = camera.batch, camera.rows
+    P = torch.stack([getattr(camera, n) for n in PARAM_NAMES], -1)  # (8,) or (B, 8)
+    if P.dim() == 1:
+        P = P.unsqueeze(0)
+    if rows is not None:
+        P = P.index_select(0, rows.to(P.device))
+    elif isinstance(camera, CameraBatch):
+        camera._check_streams(like, "points")
+    return P.to(device=like.device, dtype=torch.float64)
 
 
 # ----------------------------------------------------------------------------------- self-check
