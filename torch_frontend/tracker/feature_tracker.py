@@ -27,7 +27,6 @@ from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
 from ..fused import resolve_backend, resolve_clahe_backend, resolve_corner_backend, resolve_ransac_backend
-from ..fused import resolve_lift_backend
 from ..lk import exact_float32
 from .clock import HostClock, PublishPlan, RestartWatch, publish_plan
 from .frame import FeatureFrame
@@ -298,6 +297,9 @@ class FeatureTracker:
         resolve_ransac_backend(None, self.device)  # the RANSAC op's probe (CUDA: its self-check) here, outside any capture
         #: goodFeaturesToTrack's kernels, ``"fused"`` or ``"tensor"`` (resolved; the same corners)
         self.corner_backend = resolve_corner_backend(corner_backend, self.device)
+        # (imported here: the import line above stays as merged branches have it)
+        from ..fused import resolve_lift_backend
+
         #: the PINHOLE lift's kernel, ``"fused"`` or ``"tensor"`` (resolved; the same bits)
         self.lift_backend = resolve_lift_backend(lift_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
