@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.utils._pytree as pytree
 
+from .. import fused as _fused
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
@@ -297,11 +298,8 @@ class FeatureTracker:
         resolve_ransac_backend(None, self.device)  # the RANSAC op's probe (CUDA: its self-check) here, outside any capture
         #: goodFeaturesToTrack's kernels, ``"fused"`` or ``"tensor"`` (resolved; the same corners)
         self.corner_backend = resolve_corner_backend(corner_backend, self.device)
-        # (imported here: the import line above stays as merged branches have it)
-        from ..fused import resolve_lift_backend
-
         #: the PINHOLE lift's kernel, ``"fused"`` or ``"tensor"`` (resolved; the same bits)
-        self.lift_backend = resolve_lift_backend(lift_backend, self.device)
+        self.lift_backend = _fused.resolve_lift_backend(lift_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
                        lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
                        lk_backend=self.lk_backend, clahe_backend=self.clahe_backend,
