@@ -98,7 +98,7 @@ def pinhole_of(camera) -> Optional[int]:
         if camera.model is None:
             return None
         camera = camera._impl[0]
-    if type(camera)._lift_impl is not PinholeCamera._lift_impl or not isinstance(camera, PinholeCamera):
+    if not isinstance(camera, PinholeCamera) or type(camera)._lift_impl is not PinholeCamera._lift_impl:
         return None
     return int(camera.undistort_iters)
 
