@@ -106,7 +106,8 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     report = json.loads(out.strip().splitlines()[-1])
     assert set(report) == {"lk", "lk_init", "lk_back", "pyramid_level0", "pyramid_down", "clahe_lut",
                            "clahe_blend", "mask_decide", "mask_draw", "ransac_score",
-                           "ransac_score_state", "corners_response", "corners_candidates"}, sorted(report)
+                           "ransac_score_state", "corners_response", "corners_candidates",
+                           "pinhole_lift", "pinhole_lift_f64"}, sorted(report)
     for name, r in report.items():
         assert r["fma"] == [], (name, r)
         assert r["approx"] == 0 and r["div_full"] == 0 and r["ftz"] == 0, (name, r)
@@ -114,6 +115,7 @@ def test_ptx_sm90_has_only_correctly_rounded_float_ops():
     # the LK really is float code (the checks above are not vacuous)
     assert report["lk"]["n_float_ops"] > 100, report["lk"]
     assert report["ransac_score"]["n_float_ops"] > 50, report["ransac_score"]
+    assert report["pinhole_lift"]["n_float_ops"] > 20, report["pinhole_lift"]
     assert time.time() - t0 < _TIMEOUT
 
 

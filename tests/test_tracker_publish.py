@@ -190,7 +190,8 @@ def test_an_unpublished_step_runs_no_publish_kernels_and_publishes_the_same_fram
         assert plan.every_tracked
         if plan.lanes == 0:
             assert not touched, f"step {k}: track-only step launched kernels in {touched}"
-            assert c.kernels < c_all.kernels - 400, (c.kernels, c_all.kernels)
+            # (a bound relative to the step: the fused stages shrink both counts, 128 vs 495 with the fused lift)
+            assert 2 * c.kernels < c_all.kernels, (c.kernels, c_all.kernels)
             print(f"kernels per step: track-only {c.kernels}, every stream {c_all.kernels}")
         else:
             assert plan.lanes == plan.batch and touched

@@ -65,8 +65,11 @@ def test_strategy_by_device():
         ("fused", "fused", "tensor")
     assert (_tuning.CPU.corner_backend, _tuning.CUDA.corner_backend, _tuning.ONE_PASS.corner_backend) == (
         "fused", "fused", "tensor")
+    assert (_tuning.CPU.lift_backend, _tuning.CUDA.lift_backend, _tuning.ONE_PASS.lift_backend) == (
+        "fused", "fused", "tensor")
     assert dataclasses.replace(_tuning.CUDA, lk_backend="tensor", clahe_backend="tensor",
-                               ransac_backend="tensor", corner_backend="tensor") == _tuning.ONE_PASS
+                               ransac_backend="tensor", corner_backend="tensor",
+                               lift_backend="tensor") == _tuning.ONE_PASS
     one = _tuning.ONE_PASS
     assert one.clahe_rows(64 * 480, 752) == [(0, 64 * 480)]
     assert one.pyramid_streams(64, 480, 752) is None

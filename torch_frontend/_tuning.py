@@ -106,6 +106,11 @@ class Strategy:
     #: kernels back to back on ``front_group`` streams at a time (each stream's image and pyramid reused
     #: while in cache), or None: three stage ops over the whole batch. Needs the fused CLAHE and LK
     front_group: Optional[int] = None
+    #: camodocal's PINHOLE lift in the tracker (``lift_normalised``): ``"fused"``, one custom op
+    #: (``fused/lift_op.py``: numba on the CPU, one Triton launch on CUDA; the tensor path's bits), or
+    #: ``"tensor"`` (``PinholeCamera._lift_impl``). Other camera models lift with the tensor path. A
+    #: tracker overrides it (``lift_backend=``)
+    lift_backend: str = "tensor"
 
     # ------------------------------------------------------------------ work splits
     def clahe_rows(self, rows: int, width: int) -> List[Tuple[int, int]]:
@@ -181,6 +186,7 @@ CPU = Strategy(
     # of 8; ab_tracker.py, the whole step against front_group=None: 0.91-1.02 at B = 16, 0.92-1.01 at
     # B = 64 (noise of the same size); G = 2 alike, G = 4 0.93-0.95 behind G = 1
     front_group=1,
+    lift_backend="fused",
 )
 
 # Any other device (CUDA, ...): one pass, no grouping, no blocking. The GFTT chunks and the RANSAC
@@ -206,7 +212,7 @@ ONE_PASS = Strategy(
 
 #: CUDA: one pass, and the fused kernels (Triton) for the pyramid, the LK, CLAHE, RANSAC's scoring and detection
 CUDA = dataclasses.replace(ONE_PASS, lk_backend="fused", clahe_backend="fused", ransac_backend="fused",
-                           corner_backend="fused")
+                           corner_backend="fused", lift_backend="fused")
 
 #: device type -> strategy; types not listed get :data:`ONE_PASS` (tests swap entries to check that
 #: a strategy does not change results)

@@ -33,7 +33,7 @@ from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
 
 __all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
            "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_ransac_backend",
-           "resolve_corner_backend"]
+           "resolve_corner_backend", "resolve_lift_backend"]
 
 #: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
 BACKENDS = ("auto", "fused", "tensor")
@@ -284,4 +284,59 @@ def resolve_corner_backend(requested: Optional[str], device) -> str:
         raise ConfigError(f"corner_backend='fused' cannot run on {dev.type}: {why}")
     warn_once(f"torch_frontend: the fused detection cannot run on {dev.type} ({why}); the tensor path runs "
               "instead (the same corners, docs/kernels.md)")
+    return "tensor"
+
+
+# ---------------------------------------------------------------------------------------------
+# the PINHOLE lift (``torch_frontend::pinhole_lift``, fused/lift_op.py)
+
+
+def _probe_lift(kind: str) -> Optional[str]:
+    if kind == "cpu":
+        try:
+            from . import _numba_lift, lift_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor lift
+            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return None
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            return None  # the simulated device, fakes: the CPU kernel runs
+        try:
+            from . import _triton_lift, lift_op  # noqa: F401
+        except Exception as e:  # noqa: BLE001
+            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+        return lift_op.cuda_selfcheck()
+    return f"no fused kernel for device type {kind!r}"
+
+
+def resolve_lift_backend(requested: Optional[str], device) -> str:
+    """The PINHOLE lift's backend (``"fused"``: ``torch_frontend::pinhole_lift``, or ``"tensor"``: the
+    camera's ``_lift_impl``) on ``device`` for ``requested``, with :func:`resolve_backend`'s semantics
+    (``Strategy.lift_backend``; ``"auto"`` falls back with one warning, an explicit ``"fused"`` that
+    cannot run is a ``ConfigError``). The same bits either way; other camera models always lift with
+    the tensor path."""
+    from .. import _tuning
+
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"lift_backend must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and getattr(_tuning.for_device(dev), "lift_backend", "tensor") != "fused":
+        return "tensor"
+    key = ("lift", dev.type)
+    with _LOCK:
+        known = key in _STATUS
+        why = _STATUS.get(key)
+    if not known:
+        why = _probe_lift(dev.type)
+        with _LOCK:
+            why = _STATUS.setdefault(key, why)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"lift_backend='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused PINHOLE lift cannot run on {dev.type} ({why}); the tensor lift runs "
+              "instead (the same bits, docs/kernels.md)")
     return "tensor"

@@ -607,3 +607,8 @@ def _compile_all(target, out: Dict[str, str]) -> None:
         src = ASTSource(fn=kern, signature=_triton_corners.SIGNATURES[name], constexprs=_triton_corners.CONSTEXPRS[name])
         out[name] = triton.compile(src, target=target, options={
             **_COMPILE_OPTIONS, "num_warps": _triton_corners.NUM_WARPS}).asm["ptx"]
+    from . import _triton_lift  # the PINHOLE lift (fused/lift_op.py)
+
+    for name, (kern, sig, consts, warps) in _triton_lift.KERNELS.items():
+        src = ASTSource(fn=kern, signature=sig, constexprs=consts)
+        out[name] = triton.compile(src, target=target, options={**_COMPILE_OPTIONS, "num_warps": warps}).asm["ptx"]

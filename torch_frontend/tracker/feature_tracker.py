@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.utils._pytree as pytree
 
+from .. import fused as _fused
 from .._checks import check_device, check_shape
 from .._compiler import prepare_compile
 from ..config import TrackerConfig
@@ -241,6 +242,10 @@ class FeatureTracker:
         corner_backend: goodFeaturesToTrack's kernels, as ``lk_backend``: None / ``"auto"``
             (default: the fused op on the CPU and CUDA), ``"fused"`` or ``"tensor"``; the same
             corners either way (``self.corner_backend``; ``docs/kernels.md``, "Detection").
+        lift_backend: the PINHOLE camera's lift, as ``lk_backend``: None / ``"auto"`` (default: the
+            fused op ``torch_frontend::pinhole_lift`` on the CPU and CUDA), ``"fused"`` or ``"tensor"``;
+            the same bits either way; other models and the differentiable step lift with the tensor
+            path (``self.lift_backend``; ``docs/kernels.md``, "The PINHOLE lift").
 
     ``track(images, timestamps)`` takes ``images (B, 1, H, W)`` (uint8 or float 0..255; ``(B, H, W)``
     accepted) and ``timestamps`` a ``(B,)`` float64 tensor or sequence of seconds, and returns a
@@ -271,6 +276,7 @@ class FeatureTracker:
         lk_backend: Optional[str] = None,
         clahe_backend: Optional[str] = None,
         corner_backend: Optional[str] = None,
+        lift_backend: Optional[str] = None,
     ):
         configs = stream_configs(config, num_streams)  # B configs; one given is every stream's
         for c in configs:
@@ -292,10 +298,12 @@ class FeatureTracker:
         resolve_ransac_backend(None, self.device)  # the RANSAC op's probe (CUDA: its self-check) here, outside any capture
         #: goodFeaturesToTrack's kernels, ``"fused"`` or ``"tensor"`` (resolved; the same corners)
         self.corner_backend = resolve_corner_backend(corner_backend, self.device)
+        #: the PINHOLE lift's kernel, ``"fused"`` or ``"tensor"`` (resolved; the same bits)
+        self.lift_backend = _fused.resolve_lift_backend(lift_backend, self.device)
         options = dict(mode=mode, seed=int(seed), capturable=self.capturable, lk_iter_budget=lk_iter_budget,
                        lk_tail_share=lk_tail_share, differentiable=self.differentiable, lk_grad_mode=grad_mode,
                        lk_backend=self.lk_backend, clahe_backend=self.clahe_backend,
-                       corner_backend=self.corner_backend)
+                       corner_backend=self.corner_backend, lift_backend=self.lift_backend)
         built: Dict[Tuple[int, int], TrackerParams] = {}
         for b, c in enumerate(configs):
             if (id(c), id(masks[b])) not in built:
@@ -313,7 +321,8 @@ class FeatureTracker:
             kwargs = dict(device=self.device, mode=mode, dtype=dtype, seed=seed, capturable=self.capturable,
                           lk_iter_budget=lk_iter_budget, lk_tail_share=lk_tail_share,
                           differentiable=self.differentiable, grad_mode=grad_mode, lk_backend=self.lk_backend,
-                          clahe_backend=self.clahe_backend, corner_backend=self.corner_backend)
+                          clahe_backend=self.clahe_backend, corner_backend=self.corner_backend,
+                          lift_backend=self.lift_backend)
             self._groups = tuple(groups)
             self._members = tuple(FeatureTracker(configs[g.streams[0]], g.size, fisheye_mask=masks[g.streams[0]],
                                                  **kwargs) for g in groups)

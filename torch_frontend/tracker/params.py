@@ -69,6 +69,10 @@ class TrackerParams:
         corner_backend: goodFeaturesToTrack's kernels, resolved (``fused.resolve_corner_backend``):
             ``"fused"`` (the ``good_features`` op; ``FeatureTracker``'s default on the CPU and CUDA)
             or ``"tensor"`` (``corners/``; the default of params built by hand). The same corners.
+        lift_backend: the PINHOLE camera's lift (``lift_normalised``), resolved
+            (``fused.resolve_lift_backend``): ``"fused"`` (the ``pinhole_lift`` op; ``FeatureTracker``'s
+            default on the CPU and CUDA) or ``"tensor"`` (the camera's ``_lift_impl``; the default of
+            params built by hand). The same bits; other models always lift with the tensor path.
 
     The remaining fields are VINS's hard-coded constants; change them only to experiment.
     """
@@ -93,6 +97,7 @@ class TrackerParams:
     lk_backend: str = "tensor"
     clahe_backend: str = "tensor"
     corner_backend: str = "tensor"
+    lift_backend: str = "tensor"
 
     # --- img_callback clock rules (mono), spec §3.2
     restart_gap: float = 1.0  # s: a larger step (or time going backwards) restarts the stream

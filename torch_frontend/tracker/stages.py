@@ -217,20 +217,41 @@ def track_features(table: FeatureTable, prev_pyr: Pyramid, pyr: Pyramid, run: Te
 # rejectWithF
 
 
-def lift_normalised(camera, pts: Tensor, valid: Tensor) -> Tensor:
+def lift_normalised(camera, pts: Tensor, valid: Tensor, backend: str = "tensor") -> Tensor:
     """``liftProjective`` then ``(x/z, y/z)`` (VINS ``undistortedPoints``), ``(B, K, 2)`` in
     ``pts``'s dtype; 0 in invalid slots.
 
     Lifted in float64 (camodocal uses double); invalid slots are lifted at a harmless point and
     ``|z| < 1e-12`` is clamped so that the division stays finite (``torch.where`` evaluates both
-    branches: a NaN there would poison gradients).
+    branches: a NaN there would poison gradients). ``backend="fused"`` (``params.lift_backend``, resolved):
+    a PINHOLE camera lifts with the one op ``torch_frontend::pinhole_lift`` (the same bits) unless a
+    gradient is asked for; other models always with their ``_lift_impl``.
     """
+    if backend == "fused":
+        xy = _fused_lift(camera, pts, valid)
+        if xy is not None:
+            return xy
     safe = torch.where(valid.unsqueeze(-1), pts.to(torch.float64), torch.zeros_like(pts, dtype=torch.float64))
     P = camera._lift_impl(safe, **camera._params_like(safe))
     z = P[..., 2:3]
     z = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
     xy = P[..., :2] / z
     return torch.where(valid.unsqueeze(-1), xy, torch.zeros_like(xy)).to(pts.dtype)
+
+
+def _fused_lift(camera, pts: Tensor, valid: Tensor) -> Optional[Tensor]:
+    """:func:`lift_normalised` by the fused PINHOLE op, or None where it does not apply (another
+    model, a mixed camera batch, a gradient asked for: the op has no autograd formula)."""
+    from ..fused.lift_op import pinhole_lift_op, pinhole_of, pinhole_params
+
+    iters = pinhole_of(camera)
+    if iters is None or pts.dim() != 3 or not pts.is_floating_point() or pts.dtype not in (torch.float32,
+                                                                                          torch.float64):
+        return None
+    params = pinhole_params(camera, pts)
+    if derivative_wanted(pts, params):
+        return None
+    return pinhole_lift_op(pts, valid, params, iters)
 
 
 @cached(32)
@@ -243,7 +264,7 @@ def _pinhole_centre(width: int, height: int, device) -> Tensor:
 def virtual_pinhole(camera, pts: Tensor, valid: Tensor, params: TrackerParams) -> Tensor:
     """rejectWithF's points: lifted, on the 460-px virtual pinhole with principal point
     ``(COL / 2, ROW / 2)`` (spec §3.8), float64 pixels."""
-    xy = lift_normalised(camera, pts, valid).to(torch.float64)
+    xy = lift_normalised(camera, pts, valid, params.lift_backend).to(torch.float64)
     return params.focal_length * xy + _pinhole_centre(params.width, params.height, pts.device)
 
 
@@ -466,7 +487,7 @@ def undistorted_points(table: FeatureTable, camera, dt: Tensor, params: TrackerP
     ``velocity_min_count``-th observation on (mono 3: ids are assigned after undistortion; fusion 2).
     Returns ``(table, velocity (B, K, 2))``."""
     with stage("undistort"):
-        un = lift_normalised(camera, table.pts, table.valid)
+        un = lift_normalised(camera, table.pts, table.valid, params.lift_backend)
     moving = table.valid & (table.track_cnt >= params.velocity_min_count)
     return table.replace(un_pts=un), _velocity(un, table.un_pts, moving, dt)
 
@@ -503,7 +524,7 @@ def track_right(table: FeatureTable, pyr: Pyramid, right: Tensor, tracked: Tenso
     rvalid = valid & rst
     uv = torch.where(rvalid.unsqueeze(-1), ruv.to(table.pts.dtype), torch.zeros_like(table.pts))
     with stage("undistort"):
-        xy = lift_normalised(camera1, uv, rvalid)
+        xy = lift_normalised(camera1, uv, rvalid, params.lift_backend)
     vel = _velocity(xy, table.right_un, rvalid & table.right_valid, dt)
     of = None if of is None else of & tracked
     return table.replace(right_un=xy, right_valid=rvalid), RightView(uv, xy, vel, rvalid), of
