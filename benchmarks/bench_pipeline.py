@@ -40,7 +40,9 @@ REPO = HERE.parent
 RESULTS = HERE / "results"
 SAMPLE = REPO / "torch_frontend" / "data" / "euroc_mini" / "mav0" / "cam0" / "data"
 
-TARGETS = {"cpu_b1": 1.5, "cpu_b8plus": 1.0, "gpu_b64_speedup": 50.0}
+#: per stream-frame against the OpenCV pipeline: B = 1 at most 1.5x, B >= 16 at most 0.8x (CPU, 1 thread);
+#: B = 64 on a GPU at least 50x faster than OpenCV on one core
+TARGETS = {"cpu_b1": 1.5, "cpu_b16plus": 0.8, "gpu_b64_speedup": 50.0}
 
 
 def _frames():
@@ -324,8 +326,8 @@ def _target(row) -> str:
         return f"{'met' if ok else 'missed'} (≥ {TARGETS['gpu_b64_speedup']:.0f}× OpenCV)"
     if row["B"] == 1:
         return f"{'met' if row['ratio'] <= TARGETS['cpu_b1'] else 'missed'} (≤ {TARGETS['cpu_b1']}×)"
-    if row["B"] >= 8:
-        return f"{'met' if row['ratio'] <= TARGETS['cpu_b8plus'] else 'missed'} (≤ {TARGETS['cpu_b8plus']}×)"
+    if row["B"] >= 16:
+        return f"{'met' if row['ratio'] <= TARGETS['cpu_b16plus'] else 'missed'} (≤ {TARGETS['cpu_b16plus']}×)"
     return "(no target)"
 
 
