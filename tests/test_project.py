@@ -104,10 +104,10 @@ def _import_everything():
 
     import torch_frontend as tf
 
-    # modules of optional extras (the CUDA kernels need Triton: `pip install -e ".[triton]"`)
-    optional = {"torch_frontend.fused._triton_lk": "triton", "torch_frontend.fused._triton_pyramid": "triton"}
+    # modules of optional extras (the CUDA kernels, fused/_triton_*.py, need Triton: `pip install -e ".[triton]"`)
+    has_triton = importlib.util.find_spec("triton") is not None
     for m in pkgutil.walk_packages(tf.__path__, "torch_frontend."):
-        if m.name in optional and importlib.util.find_spec(optional[m.name]) is None:
+        if m.name.startswith("torch_frontend.fused._triton_") and not has_triton:
             continue
         importlib.import_module(m.name)
     tr = tf.FeatureTracker(tf.load_config(REPO / "configs" / "euroc.yaml"))
