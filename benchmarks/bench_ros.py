@@ -130,7 +130,7 @@ def _offset_rounds(rounds, rate: float, offset_ms: float):
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, nargs="+", default=[1, 2, 4])
-    ap.add_argument("--rates", type=float, nargs="+", default=[2.5, 5, 7.5, 10, 15, 20, 25, 30, 40])
+    ap.add_argument("--rates", type=float, nargs="+", default=[2.5, 5, 7.5, 10, 15, 20, 25, 30, 40, 50, 60, 80, 100])
     ap.add_argument("--queue-size", type=int, default=1,
                     help="the node's queue in the rate trials (default 1: any backlog beyond one waiting frame drops)")
     ap.add_argument("--ticks", type=int, default=40, help="rounds per trial")
@@ -201,8 +201,10 @@ def _markdown(r: dict) -> str:
         "# The live ROS 1 node: sustained camera rate and latency",
         "",
         f"`PYTHONPATH=. python benchmarks/bench_ros.py` on this project's shared machine ({m['cpus']} cores, "
-        f"load average {m['loadavg_at_start'][0]:g} at the start, {m['loadavg_at_end'][0]:g} at the end: **a loaded "
-        f"machine, other sessions running**; the figures are noisy and a lower bound of an idle one). CPU, 1 torch "
+        f"load average {m['loadavg_at_start'][0]:g} at the start, {m['loadavg_at_end'][0]:g} at the end"
+        + (": **a loaded machine, other sessions running**; the figures are noisy and a lower bound of an idle one"
+           if max(m['loadavg_at_start'][0], m['loadavg_at_end'][0]) > 1.5 else ": a quiet machine")
+        + "). CPU, 1 torch "
         f"thread, EuRoC 752x480 sample frames, `configs/euroc.yaml` (150 features, FREQ 10 with 20 Hz stamps), a real "
         f"`roscore`; every camera publishes at once, {r['ticks']} frames per camera per trial; queue of "
         f"{r['queue_size']} frame(s) per camera in the rate trials (1: strict, a second waiting frame drops the "
