@@ -455,3 +455,22 @@ def test_ranks_that_resolve_other_kernels_refuse_to_start(monkeypatch):
     _same_lk_backend(Job(["fused", "fused"]), None, torch.device("cpu"))
     with pytest.raises(OptionError, match="rank 0: fused, rank 1: tensor"):
         _same_lk_backend(Job(["fused", "tensor"]), None, torch.device("cpu"))
+
+
+@pytest.mark.parametrize("stage", ["clahe", "ransac", "corners", "lift"])
+def test_a_stage_follows_the_fused_kernels_answer_without_caching_it(monkeypatch, stage):
+    """Every fused stage resolves through one mechanism: where the fused kernels cannot run (numba
+    stubbed away) the stage runs its tensor path, and once they can again the stage is fused: the
+    LK's answer is never cached a second time under the stage's key."""
+    resolve = {"clahe": fused.resolve_clahe_backend, "ransac": fused.resolve_ransac_backend,
+               "corners": fused.resolve_corner_backend, "lift": fused.resolve_lift_backend}[stage]
+    monkeypatch.setattr(fused, "_WARNED", set())
+    with monkeypatch.context() as m:
+        m.setitem(fused._STATUS, "cpu", "numba cannot be loaded (ImportError: no module named numba)")
+        m.delitem(fused._STATUS, (stage, "cpu"), raising=False)
+        with pytest.warns(RuntimeWarning, match="numba cannot be loaded"):
+            assert resolve(None, "cpu") == "tensor"
+        with pytest.raises(ConfigError, match="numba cannot be loaded"):
+            resolve("fused", "cpu")
+    assert fused.stage_unavailable_reason(stage, "cpu") is None
+    assert resolve(None, "cpu") == "fused" and resolve("fused", "cpu") == "fused"

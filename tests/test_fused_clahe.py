@@ -182,7 +182,7 @@ def test_backend_resolution_and_fallback(monkeypatch):
     assert fused.resolve_clahe_backend(None, "meta") == "tensor"  # no fused kernel there
     with pytest.raises(ConfigError, match="clahe_backend"):
         fused.resolve_clahe_backend("numba", "cpu")
-    monkeypatch.setitem(fused._CLAHE_STATUS, "cpu", "numba cannot be loaded (ImportError: no module named numba)")
+    monkeypatch.setitem(fused._STATUS, ("clahe", "cpu"), "numba cannot be loaded (ImportError: no module named numba)")
     monkeypatch.setattr(fused, "_WARNED", set())
     with pytest.warns(RuntimeWarning, match="fused CLAHE cannot run"):
         assert fused.resolve_clahe_backend(None, "cpu") == "tensor"

@@ -22,6 +22,7 @@ simulated device of ``count_step.py``, fake tensors) runs the op through its CPU
 
 from __future__ import annotations
 
+import importlib
 import threading
 import warnings
 from typing import Optional
@@ -33,7 +34,7 @@ from .layout import DEFAULT_PAD, PyramidLayout, lk_pad
 
 __all__ = ["BACKENDS", "PyramidLayout", "DEFAULT_PAD", "lk_pad", "resolve_backend", "unavailable_reason",
            "MIN_FUSED_WIDTH", "resolve_clahe_backend", "clahe_unavailable_reason", "resolve_ransac_backend",
-           "resolve_corner_backend", "resolve_lift_backend"]
+           "resolve_corner_backend", "resolve_lift_backend", "stage_unavailable_reason"]
 
 #: the LK backends a caller may ask for (``None`` / ``"auto"``: the device's strategy)
 BACKENDS = ("auto", "fused", "tensor")
@@ -97,246 +98,119 @@ def resolve_backend(requested: Optional[str], device) -> str:
     ``None`` / ``"auto"``: the device's ``_tuning`` strategy, falling back to the tensor LK with one
     warning when the fused kernels cannot run there; ``"fused"``: the fused kernels or a
     ``ConfigError`` saying why not; ``"tensor"``: the tensor LK."""
-    from .. import _tuning
-
-    req = "auto" if requested is None else requested
-    if req not in BACKENDS:
-        raise ConfigError(f"lk_backend must be one of {BACKENDS} or None, got {requested!r}")
-    if req == "tensor":
-        return "tensor"
-    dev = torch.device(device)
-    if req == "auto" and _tuning.for_device(dev).lk_backend != "fused":
-        return "tensor"
-    why = unavailable_reason(dev)
-    if why is None:
-        return "fused"
-    if req == "fused":
-        raise ConfigError(f"lk_backend='fused' cannot run on {dev.type}: {why}")
-    warn_once(f"torch_frontend: the fused LK cannot run on {dev.type} ({why}); the tensor LK runs instead "
-              "(the same results up to OpenCV's float summation order, docs/kernels.md)")
-    return "tensor"
+    return _resolve("lk", requested, device)
 
 
 # ---------------------------------------------------------------------------------------------
-# CLAHE (``fused/clahe_op.py``): its own probe, so that the LK's availability does not hide its modules'
+# The other fused stages: one mechanism. A stage runs fused where the fused kernels can
+# (:func:`unavailable_reason`, the LK's answer, never cached again) and its own modules load (and, on
+# a CUDA runtime, its own self-check passes): that second answer is cached per (stage, device type)
+# in ``_STATUS``. CLAHE's and setMask's CUDA kernels are in the LK's self-check (selfcheck.EXPECTED).
 
-_CLAHE_STATUS: dict = {}  # device kind -> None (available) or why not
+#: stage -> (its backend's parameter and Strategy field, what messages call it, what runs instead,
+#: CPU modules, CUDA modules, the CUDA self-check as "module:function" or None)
+_STAGES = {
+    "lk": ("lk_backend", "LK",
+           "the tensor LK runs instead (the same results up to OpenCV's float summation order, docs/kernels.md)",
+           (), (), None),
+    "clahe": ("clahe_backend", "CLAHE", "the tensor CLAHE runs instead (the same bits, docs/kernels.md)",
+              ("_numba_clahe", "clahe_op"), ("_triton_clahe", "clahe_op"), None),
+    "ransac": ("ransac_backend", "RANSAC scoring", "the tensor scoring runs instead (docs/kernels.md)",
+               ("_numba_ransac", "ransac_op"), ("_triton_ransac", "ransac_op"), "ransac_op:cuda_selfcheck"),
+    "corners": ("corner_backend", "detection", "the tensor path runs instead (the same corners, docs/kernels.md)",
+                ("_numba_corners", "corners_op"), ("_triton_corners", "corners_op"), "selfcheck:corners_selfcheck"),
+    "lift": ("lift_backend", "PINHOLE lift", "the tensor lift runs instead (the same bits, docs/kernels.md)",
+             ("_numba_lift", "lift_op"), ("_triton_lift", "lift_op"), "lift_op:cuda_selfcheck"),
+}
+
+
+def _probe_stage(stage: str, kind: str) -> Optional[str]:
+    _, _, _, cpu_modules, cuda_modules, check = _STAGES[stage]
+    try:
+        for name in cpu_modules if kind == "cpu" else cuda_modules:
+            importlib.import_module(f".{name}", __name__)
+    except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor path
+        lib = "numba" if kind == "cpu" else "Triton"
+        return f"{lib} cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+    if kind == "cuda" and check is not None:
+        module, function = check.split(":")
+        return getattr(importlib.import_module(f".{module}", __name__), function)()
+    return None
+
+
+def stage_unavailable_reason(stage: str, device) -> Optional[str]:
+    """Why the fused kernel of ``stage`` (a key of ``_STAGES``) cannot run on ``device``, or None when it
+    can: :func:`unavailable_reason`, then the stage's modules and CUDA self-check (probed once per
+    device type; a probe inside a CUDA graph capture is an error: resolve before capturing)."""
+    kind = torch.device(device).type
+    why = unavailable_reason(kind)
+    if why is not None or stage == "lk" or not (kind == "cpu" or (kind == "cuda" and torch.cuda.is_available())):
+        return why  # cuda-labelled tensors without a runtime (simulated device, fakes): the CPU kernels run
+    key = (stage, kind)
+    with _LOCK:
+        if key in _STATUS:
+            return _STATUS[key]
+    why = _probe_stage(stage, kind)
+    if why is not None and kind == "cuda" and torch.cuda.is_current_stream_capturing():
+        raise ConfigError(f"the fused {_STAGES[stage][1]} is resolved on its first call, which must run outside a "
+                          f"CUDA graph capture ({why}); make a first call (or build the tracker) before capturing")
+    with _LOCK:
+        return _STATUS.setdefault(key, why)
+
+
+def _resolve(stage: str, requested: Optional[str], device) -> str:
+    """``resolve_*_backend``'s one body: ``None`` / ``"auto"``: the device's ``_tuning`` strategy, falling
+    back to the tensor path with one warning where the fused kernel cannot run; ``"fused"``: the fused
+    kernel or a ``ConfigError`` saying why not; ``"tensor"``: the tensor path."""
+    from .. import _tuning
+
+    field, label, instead = _STAGES[stage][:3]
+    req = "auto" if requested is None else requested
+    if req not in BACKENDS:
+        raise ConfigError(f"{field} must be one of {BACKENDS} or None, got {requested!r}")
+    if req == "tensor":
+        return "tensor"
+    dev = torch.device(device)
+    if req == "auto" and getattr(_tuning.for_device(dev), field) != "fused":
+        return "tensor"
+    why = stage_unavailable_reason(stage, dev)
+    if why is None:
+        return "fused"
+    if req == "fused":
+        raise ConfigError(f"{field}='fused' cannot run on {dev.type}: {why}")
+    warn_once(f"torch_frontend: the fused {label} cannot run on {dev.type} ({why}); {instead}")
+    return "tensor"
 
 
 def clahe_unavailable_reason(device) -> Optional[str]:
-    """Why the fused CLAHE cannot run on ``device``, or None when it can: the fused kernels'
-    availability (:func:`unavailable_reason`, not cached again here, so that it stays the one answer),
-    then the CLAHE kernels' modules (probed once per device type)."""
-    kind = torch.device(device).type
-    why = unavailable_reason(device)
-    if why is not None or not (kind == "cpu" or (kind == "cuda" and torch.cuda.is_available())):
-        return why
-    with _LOCK:
-        if kind in _CLAHE_STATUS:
-            return _CLAHE_STATUS[kind]
-    try:
-        if kind == "cpu":
-            from . import _numba_clahe  # noqa: F401
-        else:
-            from . import _triton_clahe  # noqa: F401
-    except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor CLAHE
-        why = f"the CLAHE kernel cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-    with _LOCK:
-        _CLAHE_STATUS.setdefault(kind, why)
-        return _CLAHE_STATUS[kind]
+    """Why the fused CLAHE cannot run on ``device``, or None when it can (:func:`stage_unavailable_reason`)."""
+    return stage_unavailable_reason("clahe", device)
 
 
 def resolve_clahe_backend(requested: Optional[str], device) -> str:
     """The CLAHE backend (``"fused"``: ``torch_frontend::clahe``, or ``"tensor"``: ``equalize``'s tensor
-    CLAHE) a call on ``device`` runs for ``requested``, as :func:`resolve_backend`: ``None`` / ``"auto"``:
-    the device's ``_tuning`` strategy (``Strategy.clahe_backend``), falling back to the tensor CLAHE with
-    one warning where the fused kernel cannot run; ``"fused"``: the fused kernel or a ``ConfigError``
-    saying why not; ``"tensor"``: the tensor CLAHE. Both give OpenCV's bits."""
-    from .. import _tuning
-
-    req = "auto" if requested is None else requested
-    if req not in BACKENDS:
-        raise ConfigError(f"clahe_backend must be one of {BACKENDS} or None, got {requested!r}")
-    if req == "tensor":
-        return "tensor"
-    dev = torch.device(device)
-    if req == "auto" and _tuning.for_device(dev).clahe_backend != "fused":
-        return "tensor"
-    why = clahe_unavailable_reason(dev)
-    if why is None:
-        return "fused"
-    if req == "fused":
-        raise ConfigError(f"clahe_backend='fused' cannot run on {dev.type}: {why}")
-    warn_once(f"torch_frontend: the fused CLAHE cannot run on {dev.type} ({why}); the tensor CLAHE runs instead "
-              "(the same bits, docs/kernels.md)")
-    return "tensor"
-
-
-# ---------------------------------------------------------------------------------------------
-# F-RANSAC's scoring op (fused/ransac_op.py): its own availability (its modules, its CUDA self-check)
-
-_RANSAC_STATUS: dict = {}
-
-
-def _probe_ransac(kind: str) -> Optional[str]:
-    if kind == "cpu":
-        try:
-            from . import _numba_ransac, ransac_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001
-            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        return None
-    if kind == "cuda":
-        if not torch.cuda.is_available():
-            return None  # simulated device, fakes: the CPU kernel runs
-        try:
-            from . import _triton_ransac, ransac_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001
-            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        return ransac_op.cuda_selfcheck()
-    return f"no fused kernel for device type {kind!r}"
+    CLAHE) for ``requested`` on ``device``, as :func:`resolve_backend` (``Strategy.clahe_backend``).
+    Both give OpenCV's bits."""
+    return _resolve("clahe", requested, device)
 
 
 def resolve_ransac_backend(requested: Optional[str], device) -> str:
     """The F-RANSAC scoring backend (``"fused"`` or ``"tensor"``) for ``requested`` on ``device``, as
-    :func:`resolve_backend` does for the LK (``Strategy.ransac_backend``; ``"auto"`` falls back with one
-    warning, an explicit ``"fused"`` that cannot run is a ``ConfigError``). The two give the same
-    inlier masks up to OpenCV's float32 rounding of an error at the threshold (docs/kernels.md)."""
-    from .. import _tuning
-
-    req = "auto" if requested is None else requested
-    if req not in BACKENDS:
-        raise ConfigError(f"ransac_backend must be one of {BACKENDS} or None, got {requested!r}")
-    if req == "tensor":
-        return "tensor"
-    dev = torch.device(device)
-    if req == "auto" and _tuning.for_device(dev).ransac_backend != "fused":
-        return "tensor"
-    with _LOCK:
-        known = dev.type in _RANSAC_STATUS
-        why = _RANSAC_STATUS.get(dev.type)
-    if not known:
-        why = _probe_ransac(dev.type)
-        capturing = dev.type == "cuda" and torch.cuda.is_available() and torch.cuda.is_current_stream_capturing()
-        if capturing and why is not None:  # a self-check cannot run inside a capture: ask again later
-            raise ConfigError("the fused RANSAC scoring is resolved on its first call, which must run outside a "
-                              f"CUDA graph capture ({why}); make a first call (or build the tracker) before capturing")
-        with _LOCK:
-            why = _RANSAC_STATUS.setdefault(dev.type, why)
-    if why is None:
-        return "fused"
-    if req == "fused":
-        raise ConfigError(f"ransac_backend='fused' cannot run on {dev.type}: {why}")
-    warn_once(f"torch_frontend: the fused RANSAC scoring cannot run on {dev.type} ({why}); the tensor scoring "
-              "runs instead (docs/kernels.md)")
-    return "tensor"
-
-
-# ---------------------------------------------------------------------------------------------
-# detection (``torch_frontend::good_features``, fused/corners_op.py)
-
-
-def _probe_corners(kind: str) -> Optional[str]:
-    if kind == "cpu":
-        try:
-            from . import _numba_corners, corners_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor path
-            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        return None
-    if kind == "cuda":
-        if not torch.cuda.is_available():
-            return None  # the simulated device, fakes: the CPU kernel runs
-        try:
-            from . import _triton_corners, corners_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001
-            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        from .selfcheck import corners_selfcheck
-
-        return corners_selfcheck()
-    return f"no fused kernel for device type {kind!r}"
+    :func:`resolve_backend` (``Strategy.ransac_backend``). The two give the same inlier masks up to
+    OpenCV's float32 rounding of an error at the threshold (docs/kernels.md)."""
+    return _resolve("ransac", requested, device)
 
 
 def resolve_corner_backend(requested: Optional[str], device) -> str:
-    """The detection backend (``"fused"`` or ``"tensor"``) on ``device`` for ``requested``, with
-    :func:`resolve_backend`'s semantics: ``None`` / ``"auto"``: ``_tuning``'s ``corner_backend`` for
-    the device, falling back to the tensor path with one warning where the fused op cannot run;
-    ``"fused"``: the op or a ``ConfigError`` saying why not; ``"tensor"``: ``corners/``."""
-    from .. import _tuning
-
-    req = "auto" if requested is None else requested
-    if req not in BACKENDS:
-        raise ConfigError(f"corner_backend must be one of {BACKENDS} or None, got {requested!r}")
-    if req == "tensor":
-        return "tensor"
-    dev = torch.device(device)
-    if req == "auto" and _tuning.for_device(dev).corner_backend != "fused":
-        return "tensor"
-    key = ("corners", dev.type)
-    with _LOCK:
-        known = key in _STATUS
-        why = _STATUS.get(key)
-    if not known:
-        why = _probe_corners(dev.type)
-        with _LOCK:
-            why = _STATUS.setdefault(key, why)
-    if why is None:
-        return "fused"
-    if req == "fused":
-        raise ConfigError(f"corner_backend='fused' cannot run on {dev.type}: {why}")
-    warn_once(f"torch_frontend: the fused detection cannot run on {dev.type} ({why}); the tensor path runs "
-              "instead (the same corners, docs/kernels.md)")
-    return "tensor"
-
-
-# ---------------------------------------------------------------------------------------------
-# the PINHOLE lift (``torch_frontend::pinhole_lift``, fused/lift_op.py)
-
-
-def _probe_lift(kind: str) -> Optional[str]:
-    if kind == "cpu":
-        try:
-            from . import _numba_lift, lift_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001 - any import failure means: use the tensor lift
-            return f"numba cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        return None
-    if kind == "cuda":
-        if not torch.cuda.is_available():
-            return None  # the simulated device, fakes: the CPU kernel runs
-        try:
-            from . import _triton_lift, lift_op  # noqa: F401
-        except Exception as e:  # noqa: BLE001
-            return f"Triton cannot be loaded ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
-        return lift_op.cuda_selfcheck()
-    return f"no fused kernel for device type {kind!r}"
+    """The detection backend (``"fused"``: ``torch_frontend::good_features``, or ``"tensor"``:
+    ``corners/``) for ``requested`` on ``device``, as :func:`resolve_backend`
+    (``Strategy.corner_backend``); the same corners either way."""
+    return _resolve("corners", requested, device)
 
 
 def resolve_lift_backend(requested: Optional[str], device) -> str:
     """The PINHOLE lift's backend (``"fused"``: ``torch_frontend::pinhole_lift``, or ``"tensor"``: the
-    camera's ``_lift_impl``) on ``device`` for ``requested``, with :func:`resolve_backend`'s semantics
-    (``Strategy.lift_backend``; ``"auto"`` falls back with one warning, an explicit ``"fused"`` that
-    cannot run is a ``ConfigError``). The same bits either way; other camera models always lift with
-    the tensor path."""
-    from .. import _tuning
-
-    req = "auto" if requested is None else requested
-    if req not in BACKENDS:
-        raise ConfigError(f"lift_backend must be one of {BACKENDS} or None, got {requested!r}")
-    if req == "tensor":
-        return "tensor"
-    dev = torch.device(device)
-    if req == "auto" and getattr(_tuning.for_device(dev), "lift_backend", "tensor") != "fused":
-        return "tensor"
-    key = ("lift", dev.type)
-    with _LOCK:
-        known = key in _STATUS
-        why = _STATUS.get(key)
-    if not known:
-        why = _probe_lift(dev.type)
-        with _LOCK:
-            why = _STATUS.setdefault(key, why)
-    if why is None:
-        return "fused"
-    if req == "fused":
-        raise ConfigError(f"lift_backend='fused' cannot run on {dev.type}: {why}")
-    warn_once(f"torch_frontend: the fused PINHOLE lift cannot run on {dev.type} ({why}); the tensor lift runs "
-              "instead (the same bits, docs/kernels.md)")
-    return "tensor"
+    camera's ``_lift_impl``) for ``requested`` on ``device``, as :func:`resolve_backend`
+    (``Strategy.lift_backend``). The same bits either way; other camera models always lift with the
+    tensor path."""
+    return _resolve("lift", requested, device)
