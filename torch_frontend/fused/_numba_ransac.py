@@ -39,38 +39,37 @@ MIN_RANSAC_POINTS = 15
 MIN_GOOD = 6
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _inlier(f, x12, eff, b, j, t):
+    """Slot ``j`` of problem ``b`` is an inlier of the model ``f (9,)`` (the contract's error in its
+    order, the float32 compare ``<= t``); :func:`_count` and :func:`_mask` share it."""
+    x1 = x12[b, j, 0]
+    y1 = x12[b, j, 1]
+    x2 = x12[b, j, 2]
+    y2 = x12[b, j, 3]
+    a = f[0] * x1 + f[1] * y1 + f[2]
+    bb = f[3] * x1 + f[4] * y1 + f[5]
+    c = f[6] * x1 + f[7] * y1 + f[8]
+    s2 = 1.0 / (a * a + bb * bb)
+    d2 = x2 * a + y2 * bb + c
+    a = f[0] * x2 + f[3] * y2 + f[6]
+    bb = f[1] * x2 + f[4] * y2 + f[7]
+    c = f[2] * x2 + f[5] * y2 + f[8]
+    s1 = 1.0 / (a * a + bb * bb)
+    d1 = x1 * a + y1 * bb + c
+    e1 = d1 * d1 * s1
+    e2 = d2 * d2 * s2
+    e = e2 if e1 < e2 else e1
+    return eff[b, j] and np.float32(e) <= t
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _count(F, m, x12, eff, b, N, t):
     """Inliers of model ``F[b, m]`` on problem ``b``'s slots (the contract's error, ``<= t``)."""
-    F0 = F[b, m, 0]
-    F1 = F[b, m, 1]
-    F2 = F[b, m, 2]
-    F3 = F[b, m, 3]
-    F4 = F[b, m, 4]
-    F5 = F[b, m, 5]
-    F6 = F[b, m, 6]
-    F7 = F[b, m, 7]
-    F8 = F[b, m, 8]
+    f = F[b, m]
     cnt = 0
     for j in range(N):
-        x1 = x12[b, j, 0]
-        y1 = x12[b, j, 1]
-        x2 = x12[b, j, 2]
-        y2 = x12[b, j, 3]
-        a = F0 * x1 + F1 * y1 + F2
-        bb = F3 * x1 + F4 * y1 + F5
-        c = F6 * x1 + F7 * y1 + F8
-        s2 = 1.0 / (a * a + bb * bb)
-        d2 = x2 * a + y2 * bb + c
-        a = F0 * x2 + F3 * y2 + F6
-        bb = F1 * x2 + F4 * y2 + F7
-        c = F2 * x2 + F5 * y2 + F8
-        s1 = 1.0 / (a * a + bb * bb)
-        d1 = x1 * a + y1 * bb + c
-        e1 = d1 * d1 * s1
-        e2 = d2 * d2 * s2
-        e = e2 if e1 < e2 else e1
-        if eff[b, j] and np.float32(e) <= t:
+        if _inlier(f, x12, eff, b, j, t):
             cnt += 1
     return cnt
 
@@ -78,34 +77,9 @@ def _count(F, m, x12, eff, b, N, t):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _mask(F, m, x12, eff, b, N, t, out):
     """``out[b, j]``: slot ``j`` is an inlier of model ``F[b, m]`` (the same test as :func:`_count`)."""
-    F0 = F[b, m, 0]
-    F1 = F[b, m, 1]
-    F2 = F[b, m, 2]
-    F3 = F[b, m, 3]
-    F4 = F[b, m, 4]
-    F5 = F[b, m, 5]
-    F6 = F[b, m, 6]
-    F7 = F[b, m, 7]
-    F8 = F[b, m, 8]
+    f = F[b, m]
     for j in range(N):
-        x1 = x12[b, j, 0]
-        y1 = x12[b, j, 1]
-        x2 = x12[b, j, 2]
-        y2 = x12[b, j, 3]
-        a = F0 * x1 + F1 * y1 + F2
-        bb = F3 * x1 + F4 * y1 + F5
-        c = F6 * x1 + F7 * y1 + F8
-        s2 = 1.0 / (a * a + bb * bb)
-        d2 = x2 * a + y2 * bb + c
-        a = F0 * x2 + F3 * y2 + F6
-        bb = F1 * x2 + F4 * y2 + F7
-        c = F2 * x2 + F5 * y2 + F8
-        s1 = 1.0 / (a * a + bb * bb)
-        d1 = x1 * a + y1 * bb + c
-        e1 = d1 * d1 * s1
-        e2 = d2 * d2 * s2
-        e = e2 if e1 < e2 else e1
-        out[b, j] = eff[b, j] and np.float32(e) <= t
+        out[b, j] = _inlier(f, x12, eff, b, j, t)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
